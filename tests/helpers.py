@@ -1,0 +1,36 @@
+"""Test helpers: tolerances per dtype, tree comparison and float64 finite differences."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def tol(dtype) -> float:
+    """About 100 x eps of ``dtype``."""
+    return 100 * float(jnp.finfo(dtype).eps)
+
+
+def tree_allclose(x, y, *, rtol=1e-5, atol=1e-8) -> bool:
+    return eqx.tree_equal(x, y, typematch=True, rtol=rtol, atol=atol) is True
+
+
+def central_difference(f, x, direction, h=1e-6):
+    """Directional derivative of scalar ``f`` at ``x`` along ``direction`` (float64 only)."""
+    x = jnp.asarray(x)
+    if x.dtype != jnp.float64:
+        raise TypeError("finite differences need float64; enable jax_enable_x64")
+    return (f(x + h * direction) - f(x - h * direction)) / (2 * h)
+
+
+def check_grad_fd(f, x, *, key=0, h=1e-6, rtol=1e-4, n_dirs=3):
+    """Compare ``jax.grad(f)(x) . v`` with central differences along random ``v``."""
+    g = jax.grad(f)(x)
+    rng = np.random.default_rng(key)
+    for _ in range(n_dirs):
+        v = jnp.asarray(rng.standard_normal(np.shape(x)))
+        v = v / jnp.linalg.norm(v)
+        ad = float(jnp.vdot(g, v))
+        fd = float(central_difference(f, x, v, h))
+        assert abs(ad - fd) <= rtol * max(abs(fd), abs(ad), 1e-8), (ad, fd)
+    return g

@@ -1,0 +1,105 @@
+"""Input validation shared by the public entry points.
+
+Shape, dtype and static-option errors are raised at trace time as ``TypeError``
+or ``ValueError`` naming the function, the argument and the fix. Value checks on
+(possibly traced) data go through ``eqx.error_if`` so they survive ``jax.jit``;
+callers must use the returned array, or the check is dead code.
+"""
+
+from collections.abc import Mapping
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._types import Array
+
+
+def as_float_array(x: Any, name: str, where: str) -> Array:
+    """``x`` as a JAX array of a floating dtype (integers are promoted, other dtypes refused)."""
+    try:
+        arr = jnp.asarray(x)
+    except TypeError as err:
+        raise TypeError(f"{where}: `{name}` must be an array, got {type(x).__name__}.") from err
+    if jnp.issubdtype(arr.dtype, jnp.floating):
+        return arr
+    if jnp.issubdtype(arr.dtype, jnp.integer) or arr.dtype == jnp.bool_:
+        return arr.astype(jnp.result_type(float))
+    raise TypeError(
+        f"{where}: `{name}` must have a real floating or integer dtype, got {arr.dtype}; "
+        f"convert it with `.astype(jnp.float32)`."
+    )
+
+
+def check_ndim(x: Array, ndim: int, name: str, where: str, layout: str) -> None:
+    if x.ndim != ndim:
+        raise ValueError(
+            f"{where}: `{name}` must have {ndim} dimensions {layout}, got shape {tuple(x.shape)}; "
+            f"for a batch, use `jax.vmap`."
+        )
+    if any(s == 0 for s in x.shape):
+        raise ValueError(f"{where}: `{name}` must not be empty, got shape {tuple(x.shape)}.")
+
+
+def volume(x: Any, name: str, where: str, *, unit_range: bool = False) -> Array:
+    """Validate a ``(D, H, W)`` volume: rank and dtype at trace time, finiteness (and
+    optionally ``[0, 1]``) at run time via ``eqx.error_if``."""
+    arr = as_float_array(x, name, where)
+    check_ndim(arr, 3, name, where, "(D, H, W)")
+    return finite(arr, name, where, unit_range=unit_range)
+
+
+def finite(arr: Array, name: str, where: str, *, unit_range: bool = False) -> Array:
+    arr = eqx.error_if(
+        arr, ~jnp.all(jnp.isfinite(arr)),
+        f"{where}: `{name}` contains NaN or inf; clean the data (e.g. `jnp.nan_to_num`) first.",
+    )
+    if unit_range:
+        arr = eqx.error_if(
+            arr, jnp.any((arr < 0) | (arr > 1)),
+            f"{where}: `{name}` must lie in [0, 1] (opacities); map it through a transfer "
+            f"function or `jnp.clip` it yourself.",
+        )
+    return arr
+
+
+def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:
+    """A static integer option ``>= minimum``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise TypeError(f"{where}: `{name}` must be a Python int (it sets array shapes), "
+                        f"got {value!r}.")
+    if value < minimum:
+        raise ValueError(f"{where}: `{name}` must be >= {minimum}, got {value}.")
+    return int(value)
+
+
+def positive_float(value: Any, name: str, where: str) -> float:
+    """A static float option ``> 0``."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{where}: `{name}` must be a number, got {value!r}.") from err
+    if not np.isfinite(out) or out <= 0:
+        raise ValueError(f"{where}: `{name}` must be a finite number > 0, got {value!r}.")
+    return out
+
+
+def spacing(value: Any, where: str) -> tuple[float, float, float]:
+    """Voxel spacing ``(sd, sh, sw)`` in millimetres: a positive scalar or 3-sequence."""
+    vals = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 \
+        else np.asarray(value, dtype=float)
+    if vals.shape != (3,):
+        raise ValueError(f"{where}: `spacing` must be a number or 3 numbers (d, h, w) in mm, "
+                         f"got {value!r}.")
+    if not np.all(np.isfinite(vals)) or np.any(vals <= 0):
+        raise ValueError(f"{where}: `spacing` must be finite and > 0, got {value!r}.")
+    return tuple(float(v) for v in vals)
+
+
+def option(value: Any, table: Mapping[str, Any], name: str, where: str) -> Any:
+    """Look ``value`` up in a dispatch table, listing the valid names on failure."""
+    if not isinstance(value, str) or value not in table:
+        valid = ", ".join(repr(k) for k in table)
+        raise ValueError(f"{where}: unknown {name} {value!r}; valid values are {valid}.")
+    return table[value]

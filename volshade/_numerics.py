@@ -1,0 +1,95 @@
+"""Numerically safe elementary functions shared by every kernel.
+
+Each helper is written with the double-``where`` idiom: the unsafe branch is fed
+a harmless value where it would blow up, so that both the value *and* the
+gradient are finite at the singular point (``jnp.where`` alone still
+differentiates the discarded branch and turns ``0 * inf`` into NaN).
+Tolerances come from the input dtype; outputs keep the input dtype.
+"""
+
+import jax.numpy as jnp
+
+from ._types import Array, ArrayLike
+
+
+def tiny(x: ArrayLike) -> Array:
+    """Smallest positive normal number of ``x``'s (floating) dtype."""
+    return jnp.asarray(jnp.finfo(jnp.result_type(x, jnp.float32)).tiny, jnp.result_type(x))
+
+
+def eps(x: ArrayLike) -> Array:
+    """Machine epsilon of ``x``'s (floating) dtype."""
+    return jnp.asarray(jnp.finfo(jnp.result_type(x, jnp.float32)).eps, jnp.result_type(x))
+
+
+def safe_div(num: ArrayLike, den: ArrayLike) -> Array:
+    """``num / den`` where ``den != 0``, and 0 (with zero gradient) where ``den == 0``."""
+    num, den = jnp.asarray(num), jnp.asarray(den)
+    nonzero = den != 0
+    safe_den = jnp.where(nonzero, den, jnp.ones_like(den))
+    return jnp.where(nonzero, num / safe_den, jnp.zeros_like(num / safe_den))
+
+
+def safe_log(x: ArrayLike) -> Array:
+    """``log(x)`` for ``x > 0``; ``-inf`` with zero gradient for ``x <= 0``."""
+    x = jnp.asarray(x)
+    positive = x > 0
+    safe_x = jnp.where(positive, x, jnp.ones_like(x))
+    return jnp.where(positive, jnp.log(safe_x), -jnp.inf)
+
+
+def log1m(alpha: ArrayLike) -> Array:
+    """``log(1 - alpha)``, accurate for small ``alpha``; ``-inf`` at ``alpha >= 1``.
+
+    The gradient is ``-1 / (1 - alpha)`` for ``alpha < 1`` and 0 at
+    ``alpha >= 1`` (where the value is already ``-inf``), never NaN.
+    """
+    alpha = jnp.asarray(alpha)
+    below = alpha < 1
+    safe_alpha = jnp.where(below, alpha, jnp.zeros_like(alpha))
+    return jnp.where(below, jnp.log1p(-safe_alpha), -jnp.inf)
+
+
+def safe_sqrt(x: ArrayLike) -> Array:
+    """``sqrt(x)`` for ``x > 0`` and 0 with zero gradient for ``x <= 0``."""
+    x = jnp.asarray(x)
+    positive = x > 0
+    safe_x = jnp.where(positive, x, jnp.ones_like(x))
+    return jnp.where(positive, jnp.sqrt(safe_x), jnp.zeros_like(x))
+
+
+def safe_norm(x: ArrayLike, axis: int = -1, keepdims: bool = False) -> Array:
+    """Euclidean norm along ``axis`` whose gradient at the zero vector is exactly 0."""
+    x = jnp.asarray(x)
+    return safe_sqrt(jnp.sum(x * x, axis=axis, keepdims=keepdims))
+
+
+def safe_normalize(x: ArrayLike, axis: int = -1) -> Array:
+    """``x / |x|`` along ``axis``; the zero vector maps to the zero vector (finite gradient)."""
+    x = jnp.asarray(x)
+    return safe_div(x, safe_norm(x, axis=axis, keepdims=True))
+
+
+def correct_opacity(alpha: ArrayLike, ratio: ArrayLike) -> Array:
+    r"""Opacity correction for a changed step length.
+
+    $\alpha' = 1 - (1 - \alpha)^{r}$ with $r = \Delta s / \Delta s_0$, computed as
+    ``-expm1(r * log1p(-alpha))``. ``alpha = 1`` stays exactly 1 (gradient 0
+    there), ``alpha = 0`` stays exactly 0.
+    """
+    alpha = jnp.asarray(alpha)
+    opaque = alpha >= 1
+    safe_alpha = jnp.where(opaque, jnp.zeros_like(alpha), alpha)
+    corrected = -jnp.expm1(ratio * jnp.log1p(-safe_alpha))
+    return jnp.where(opaque, jnp.ones_like(corrected), corrected)
+
+
+def opacity_from_extinction(tau: ArrayLike, length: ArrayLike) -> Array:
+    r"""Beer--Lambert opacity of a segment: $\alpha = 1 - e^{-\tau \ell}$ (``-expm1``)."""
+    return -jnp.expm1(-jnp.asarray(tau) * length)
+
+
+def smoothstep(edge0: ArrayLike, edge1: ArrayLike, x: ArrayLike) -> Array:
+    """Hermite smoothstep: 0 below ``edge0``, 1 above ``edge1``, ``3t^2 - 2t^3`` between."""
+    t = jnp.clip(safe_div(jnp.asarray(x) - edge0, jnp.asarray(edge1) - edge0), 0, 1)
+    return t * t * (3 - 2 * t)
