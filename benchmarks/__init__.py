@@ -1,0 +1,1 @@
+"""volshade benchmarks: `python -m benchmarks.run NAME [--quick] [--json OUT]`."""

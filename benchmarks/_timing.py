@@ -1,0 +1,36 @@
+"""Timing helpers shared by the benchmarks: warm-up, compile time apart, medians."""
+
+import statistics
+import time
+from collections.abc import Callable
+
+import jax
+
+
+def block(x):
+    return jax.block_until_ready(x)
+
+
+def time_fn(fn: Callable, *args, repeats: int = 5) -> dict:
+    """Time ``fn(*args)``: the first call (compile + run) apart, then the median of ``repeats``.
+
+    ``fn`` should be jitted; its output is blocked on so asynchronous dispatch
+    is not mistaken for speed.
+    """
+    t0 = time.perf_counter()
+    block(fn(*args))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        block(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return {"first_call_s": first, "median_s": statistics.median(times), "times_s": times}
+
+
+def fit_exponent(sizes: list[float], times: list[float]) -> float:
+    """Least-squares slope of log(time) against log(size)."""
+    import numpy as np
+
+    slope, _ = np.polyfit(np.log(sizes), np.log(times), 1)
+    return float(slope)

@@ -1,0 +1,82 @@
+"""Benchmark harness.
+
+    python -m benchmarks.run NAME [--quick] [--json OUT]
+
+Each benchmark is a module ``benchmarks/NAME.py`` with a function
+``run(quick: bool) -> dict`` returning::
+
+    {"title": str,                 # one line
+     "sizes": {...},               # problem sizes, for the record
+     "rows": [{"case": str, "median_s": float, ...}, ...],   # one row per measured case
+     "ratios": {"name": float, ...},                          # measured in this same run
+     "notes": str}                 # optional
+
+The harness adds the device, the JAX version and the date, prints a table and
+writes JSON (to OUT, or to benchmarks/results/NAME.json).
+"""
+
+import argparse
+import datetime
+import importlib
+import json
+import pathlib
+import platform
+import sys
+
+import jax
+
+BENCHMARKS = ("render", "lao", "obscurance", "composition")
+
+
+def _format_table(rows: list[dict]) -> str:
+    cols: list[str] = []
+    for row in rows:
+        cols += [k for k in row if k not in cols]
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return str(v)
+    cells = [[fmt(r.get(c, "")) for c in cols] for r in rows]
+    widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(cols)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(cols, widths, strict=True))]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)) for r in cells]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("name", choices=BENCHMARKS)
+    parser.add_argument("--quick", action="store_true", help="small sizes, few repeats")
+    parser.add_argument("--json", type=pathlib.Path, default=None, help="where to write JSON")
+    args = parser.parse_args(argv)
+
+    module = importlib.import_module(f"benchmarks.{args.name}")
+    result = module.run(quick=args.quick)
+    device = jax.devices()[0]
+    result.update(
+        name=args.name,
+        quick=args.quick,
+        device=f"{device.platform}:{getattr(device, 'device_kind', '')}",
+        jax_version=jax.__version__,
+        python=platform.python_version(),
+        machine=platform.machine(),
+        date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    )
+    print(f"# {result['title']}  [{result['device']}, jax {result['jax_version']}]")
+    print(f"# sizes: {result.get('sizes', {})}")
+    print(_format_table(result["rows"]))
+    for key, value in result.get("ratios", {}).items():
+        print(f"ratio {key}: {value:.3g}")
+    if result.get("notes"):
+        print(f"# {result['notes']}")
+    out = args.json or pathlib.Path(__file__).parent / "results" / f"{args.name}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2, default=float))
+    print(f"# wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
