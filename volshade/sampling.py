@@ -28,7 +28,7 @@ def trilinear(
     points: Float[Array, "*batch 3"],
     *,
     mode: str = "constant",
-) -> Float[Array, "*batch *C"]:
+) -> Array:
     """Trilinearly interpolate ``volume`` at ``points`` (voxel index coordinates).
 
     Args:

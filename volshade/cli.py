@@ -1,0 +1,168 @@
+"""The ``volshade`` command: ``volshade demo`` and ``volshade render VOLUME``.
+
+    volshade demo [--out DIR] [--size N] [--image N]
+    volshade render VOLUME --out img.png [--preset NAME] [--azimuth A] [--elevation E] ...
+
+VOLUME is a phantom name (shells, corner, orange, bucky, noise), a real-data
+name (colin27, mni152: found via VOLSHADE_DATA) or a path to a NIfTI file.
+"""
+
+import argparse
+import os
+import pathlib
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from . import data, transfer
+from .camera import Camera
+from .render import save_png
+from .scene import AMBIENT, Scene, render
+from .shading import SHADERS
+
+
+@dataclass
+class Job:
+    """One image of the demo: a name, a scene factory and a camera."""
+
+    name: str
+    make_scene: Callable[[], Scene]
+    camera: Camera
+
+
+def _load_volume(spec: str, downsample: int, size: int):
+    if spec in data.PHANTOMS:
+        return data.phantom(spec, shape=size), (1.0, 1.0, 1.0)
+    if spec in data.DATASETS:
+        return data.load(spec, downsample=downsample)
+    if pathlib.Path(spec).suffix in (".nii", ".gz"):
+        return data.load_nifti(spec, downsample=downsample)
+    valid = ", ".join([*data.PHANTOMS, *data.DATASETS])
+    raise SystemExit(f"volshade: unknown volume {spec!r}; use one of {valid} or a .nii/.nii.gz path.")
+
+
+def _run_jobs(jobs: list[Job], out: pathlib.Path) -> list[tuple[str, float]]:
+    out.mkdir(parents=True, exist_ok=True)
+    timings = []
+    rendered = {}
+    for job in tqdm(jobs, desc="volshade demo", unit="image"):
+        t0 = time.perf_counter()
+        image = jax.block_until_ready(eqx.filter_jit(render)(job.make_scene(), job.camera))
+        timings.append((job.name, time.perf_counter() - t0))
+        rendered[job.name] = np.asarray(image)
+        save_png(out / f"{job.name}.png", image)
+    return timings, rendered
+
+
+def _side_by_side(images: list[np.ndarray]) -> np.ndarray:
+    gap = np.ones((images[0].shape[0], 4, images[0].shape[2]), images[0].dtype)
+    row = [images[0]]
+    for img in images[1:]:
+        row += [gap, img]
+    return np.concatenate(row, axis=1)
+
+
+def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
+    """Render the built-in phantoms (and Colin27 when available) to PNGs in ``out``."""
+    shape = (image, image)
+    cam = Camera.orbit(azimuth=35, elevation=25, image_shape=shape)
+    jobs = []
+    vol = data.phantom("shells", shape=size)
+    cut = vol.at[:, :, size // 2:].set(0)
+    bg = (0.08, 0.08, 0.1)
+    for effect in ("none", "phong"):
+        jobs.append(Job(f"shells_{effect}", lambda e=effect: Scene(
+            volume=cut, transfer=transfer.preset("shells"), shading=e, background=bg), cam))
+    head = None
+    try:
+        head, spacing = data.load("colin27", downsample=downsample)
+    except FileNotFoundError as err:
+        print(f"volshade demo: skipping the Colin27 head ({str(err).splitlines()[0]})")
+    if head is not None:
+        front = Camera.orbit(azimuth=30, elevation=10, image_shape=shape, distance=2.6)
+        for effect in ("none", "phong"):
+            jobs.append(Job(f"colin27_{effect}", lambda e=effect: Scene(
+                volume=head, spacing=spacing, transfer=transfer.preset("head"), shading=e,
+                step=float(min(spacing)) / 2, background=bg), front))
+    t0 = time.perf_counter()
+    timings, rendered = _run_jobs(jobs, out)
+    for prefix in ("shells", "colin27"):
+        panel = [img for name, img in rendered.items() if name.startswith(prefix)]
+        if len(panel) > 1:
+            save_png(out / f"{prefix}_side_by_side.png", _side_by_side(panel))
+    total = time.perf_counter() - t0
+    parts = ", ".join(f"{name} {sec:.1f}s" for name, sec in timings)
+    print(f"volshade demo: {len(jobs)} images in {total:.1f}s on {jax.devices()[0].platform} "
+          f"({parts}) -> {out}/")
+    return 0
+
+
+def render_command(args: argparse.Namespace) -> int:
+    vol, spacing = _load_volume(args.volume, args.downsample, args.size)
+    tf = transfer.preset(args.preset)
+    cam = Camera.orbit(azimuth=args.azimuth, elevation=args.elevation, distance=args.distance,
+                       image_shape=(args.image, args.image), projection=args.projection)
+    step = args.step if args.step is not None else float(min(spacing)) / 2
+    scene = Scene(volume=vol, spacing=spacing, transfer=tf, shading=args.shading,
+                  ambient=args.ambient, step=step, background=tuple(args.background))
+    with tqdm(total=1, desc=f"rendering {args.volume}", unit="image") as bar:
+        t0 = time.perf_counter()
+        image = jax.block_until_ready(eqx.filter_jit(render)(scene, cam))
+        bar.update()
+    save_png(args.out, image)
+    print(f"volshade render: {args.volume} {tuple(vol.shape)} -> {args.out} "
+          f"in {time.perf_counter() - t0:.1f}s")
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="volshade", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_demo = sub.add_parser("demo", help="render built-in phantoms (and Colin27) to PNGs")
+    p_demo.add_argument("--out", type=pathlib.Path, default=pathlib.Path("volshade-demo"))
+    p_demo.add_argument("--size", type=int, default=96, help="phantom edge in voxels")
+    p_demo.add_argument("--image", type=int, default=256, help="image edge in pixels")
+    p_demo.add_argument("--downsample", type=int, default=2,
+                        help="integer block-mean factor for the real head")
+    p_render = sub.add_parser("render", help="render one volume to a PNG")
+    p_render.add_argument("volume", help="phantom name, dataset name or NIfTI path")
+    p_render.add_argument("--out", type=pathlib.Path, required=True)
+    p_render.add_argument("--preset", default="grey", help=f"one of {', '.join(transfer.PRESETS)}")
+    p_render.add_argument("--shading", default="phong", choices=list(SHADERS))
+    p_render.add_argument("--ambient", default="none", choices=[a for a in AMBIENT if a != "volume"])
+    p_render.add_argument("--azimuth", type=float, default=30.0)
+    p_render.add_argument("--elevation", type=float, default=20.0)
+    p_render.add_argument("--distance", type=float, default=2.5)
+    p_render.add_argument("--projection", default="perspective",
+                          choices=["perspective", "orthographic"])
+    p_render.add_argument("--image", type=int, default=256, help="image edge in pixels")
+    p_render.add_argument("--size", type=int, default=96, help="phantom edge in voxels")
+    p_render.add_argument("--downsample", type=int, default=1)
+    p_render.add_argument("--step", type=float, default=None, help="sample distance in mm")
+    p_render.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    for name in ("size", "image", "downsample"):
+        if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
+            raise SystemExit(f"volshade: --{name} must be >= 1, got {getattr(args, name)}.")
+    try:
+        if args.command == "demo":
+            return demo(args.out, args.size, args.image, args.downsample)
+        return render_command(args)
+    except (ValueError, TypeError, FileNotFoundError, ImportError) as err:
+        print(f"volshade: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

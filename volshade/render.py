@@ -1,0 +1,138 @@
+r"""Ray marching: camera rays -> samples -> classification -> shading -> composition.
+
+Each pixel's ray is clipped against the box of voxel cells and sampled at a
+fixed step $\Delta s$ (mm). The number of samples is static
+(``ceil(box diagonal / step) + 1``); sample $k$ stands for the segment
+$[t_0 + k\Delta s,\, \min(t_0 + (k+1)\Delta s, t_1)]$ and sits at its midpoint,
+so the segment lengths add up exactly to the ray's path through the box and a
+uniform medium reproduces Beer--Lambert, $T = e^{-\tau \ell}$. Samples past
+the exit point have length 0, hence opacity 0. Intensities are interpolated
+trilinearly with the ``"nearest"`` boundary rule (uniform right up to the
+faces) and classified after interpolation; opacities are corrected to each
+segment's length (:meth:`volshade.TransferFunction.opacity`).
+
+The march is a ``lax.scan`` over samples carrying all pixels at once; its
+body is rematerialised in reverse mode (``jax.checkpoint``), so memory for
+gradients is one compositing state per sample, not every intermediate.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _checks
+from .camera import Camera, box_half_extent, intersect_box
+from .composition import COMPOSITORS, Sample
+from .gradient import regression_gradient
+from .sampling import trilinear
+from .shading import SHADERS, Phong
+from .transfer import TransferFunction
+from ._types import Array, Float
+
+
+def n_samples(shape: tuple[int, int, int], spacing, step: float) -> int:
+    """Static number of samples per ray: the box diagonal over the step, plus one."""
+    diagonal = float(np.linalg.norm(np.asarray(shape) * np.asarray(spacing)))
+    return math.ceil(diagonal / step) + 1
+
+
+def march(
+    volume: Float[Array, "D H W"],
+    transfer: TransferFunction,
+    camera: Camera,
+    *,
+    spacing=(1.0, 1.0, 1.0),
+    step: float = 0.5,
+    shading: str = "none",
+    phong: Phong | None = None,
+    ambient: Array | None = None,
+    composition: str = "standard",
+    background=(0.0, 0.0, 0.0),
+) -> Float[Array, "H W 4"]:
+    """Render a volume by front-to-back ray marching.
+
+    Args:
+        volume: ``(D, H, W)`` intensities (the transfer function's domain).
+        transfer: classification of intensities into colour and opacity.
+        camera: the view.
+        spacing: voxel size ``(sd, sh, sw)`` in mm.
+        step: sample distance in mm (static: it sets the number of samples).
+        shading: ``"none"`` or ``"phong"`` (see :mod:`volshade.shading`).
+        phong: Blinn--Phong coefficients (default :class:`~volshade.shading.Phong`).
+        ambient: optional ``(D, H, W)`` or ``(D, H, W, 3)`` ambient factor in
+            [0, 1] (ambient occlusion, obscurance), sampled trilinearly.
+        composition: compositor name (see :data:`volshade.composition.COMPOSITORS`).
+        background: RGB colour behind the volume.
+
+    Returns:
+        ``(H, W, 4)``: RGB with the background blended in, and the accumulated
+        opacity; the dtype of ``volume``.
+
+    Raises:
+        ValueError / TypeError: bad shapes, dtypes, options or sizes; NaN or inf
+            in ``volume`` or ``ambient`` (raised when the data is seen).
+    """
+    where = "volshade.render"
+    volume = _checks.volume(volume, "volume", where)
+    spacing = _checks.spacing(spacing, where)
+    step = _checks.positive_float(step, "step", where)
+    shader = _checks.option(shading, SHADERS, "shading", where)
+    comp = _checks.option(composition, COMPOSITORS, "composition", where)
+    dtype = volume.dtype
+    if ambient is not None:
+        ambient = _checks.as_float_array(ambient, "ambient", where).astype(dtype)
+        if ambient.shape[:3] != volume.shape or ambient.ndim not in (3, 4) or (
+                ambient.ndim == 4 and ambient.shape[-1] != 3):
+            raise ValueError(f"{where}: `ambient` must have shape {volume.shape} or "
+                             f"{(*volume.shape, 3)}, got {ambient.shape}.")
+        ambient = _checks.finite(ambient, "ambient", where)
+    phong = Phong() if phong is None else phong
+    bg = jnp.broadcast_to(jnp.asarray(background, dtype), (3,))
+
+    half_extent, scale = box_half_extent(volume.shape, spacing)
+    half_extent = half_extent.astype(dtype)
+    origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())
+    batch = origins.shape[:-1]
+    t_near, t_far = intersect_box(origins, directions, half_extent)
+    length = jnp.maximum(t_far - t_near, 0)
+    dt = jnp.asarray(step / scale, dtype)
+    to_index = jnp.asarray(scale / np.asarray(spacing), dtype)
+    gradient = regression_gradient(volume, spacing=spacing, size=3) if shader.needs_gradient \
+        else None
+    eye_dir = -directions
+
+    def body(state, k):
+        seg = jnp.clip(length - k * dt, 0, dt)
+        t_mid = t_near + k * dt + 0.5 * seg
+        index = (origins + t_mid[..., None] * directions + half_extent) * to_index - 0.5
+        value = trilinear(volume, index, mode="nearest")
+        color, alpha = transfer(value, step=seg * scale)
+        amb = jnp.ones((*batch, 1), dtype) if ambient is None else \
+            trilinear(ambient, index, mode="nearest").reshape(*batch, -1)
+        grad = None if gradient is None else trilinear(gradient, index, mode="nearest")
+        shaded = shader.fn(color, grad, eye_dir, eye_dir, amb, phong)
+        return comp.step(state, Sample(alpha[..., None] * shaded, alpha)), None
+
+    state = comp.init(batch, dtype)
+    steps = jnp.arange(n_samples(volume.shape, spacing, step), dtype=dtype)
+    state, _ = jax.lax.scan(jax.checkpoint(body), state, steps)
+    return comp.finish(state, bg, jnp.asarray(0, dtype))
+
+
+def save_png(path, image: Float[Array, "H W C"]) -> None:
+    """Write an ``(H, W, 3)`` or ``(H, W, 4)`` image in [0, 1] as an 8-bit RGB PNG.
+
+    Values above 1 (added-up highlights) are clipped to white when written;
+    the alpha channel is dropped, since the background is already blended in.
+    """
+    from skimage import io, util
+
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[-1] not in (3, 4):
+        raise ValueError(f"volshade.save_png: `image` must be (H, W, 3) or (H, W, 4), "
+                         f"got {img.shape}.")
+    if not np.all(np.isfinite(img)):
+        raise ValueError("volshade.save_png: `image` contains NaN or inf.")
+    io.imsave(str(path), util.img_as_ubyte(np.clip(img[..., :3], 0, 1)), check_contrast=False)

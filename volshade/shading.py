@@ -1,0 +1,90 @@
+r"""Local shading of samples: Blinn--Phong with an ambient term from a shading volume.
+
+For a sample of colour $c$, unit normal $N$, light direction $L$, view
+direction $V$ and half vector $H = (L + V)/|L + V|$,
+
+$$ I = c\,(k_a A + k_d |N\cdot L|) + k_s |N\cdot H|^n, $$
+
+where $A$ is the ambient factor taken from a precomputed view-independent
+shading volume (ambient occlusion, obscurance; grey or RGB) and 1 without one.
+The diffuse and specular terms are two-sided (``|N.L|``), as usual in volume
+rendering where gradients point either way across a boundary. Where the
+gradient vanishes the normal is the zero vector and only the ambient term
+remains; the normal is computed with :func:`~volshade._numerics.safe_normalize`
+so its gradient stays finite there.
+
+References:
+    Blinn: Models of light reflection for computer synthesized pictures. SIGGRAPH 1977.
+"""
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ._numerics import safe_normalize
+from ._types import Array, Float
+
+
+class Phong(eqx.Module):
+    """Blinn--Phong coefficients; all are differentiable leaves.
+
+    Attributes:
+        ambient: $k_a$, weight of the ambient term.
+        diffuse: $k_d$.
+        specular: $k_s$ (white highlights).
+        shininess: Phong exponent $n$.
+    """
+
+    ambient: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.35)
+    diffuse: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.65)
+    specular: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.25)
+    shininess: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=24.0)
+
+
+def blinn_phong(
+    color: Float[Array, "*batch 3"],
+    gradient: Float[Array, "*batch 3"],
+    light: Float[Array, "*batch 3"],
+    view: Float[Array, "*batch 3"],
+    ambient: Float[Array, "*batch #3"],
+    params: Phong,
+) -> Float[Array, "*batch 3"]:
+    """Blinn--Phong shading of samples (see the module docstring for the formula).
+
+    Args:
+        color: ``(..., 3)`` unshaded RGB.
+        gradient: ``(..., 3)`` field gradient; the normal is ``-gradient / |gradient|``.
+        light, view: ``(..., 3)`` unit vectors from the sample to the light and the eye.
+        ambient: ``(..., 1)`` or ``(..., 3)`` ambient factor in [0, 1].
+        params: :class:`Phong` coefficients.
+
+    Returns:
+        ``(..., 3)`` shaded RGB (may exceed 1 where highlights add up).
+    """
+    normal = safe_normalize(-gradient)
+    half = safe_normalize(light + view)
+    n_dot_l = jnp.abs(jnp.sum(normal * light, axis=-1, keepdims=True))
+    n_dot_h = jnp.abs(jnp.sum(normal * half, axis=-1, keepdims=True))
+    dtype = color.dtype
+    specular = params.specular.astype(dtype) * n_dot_h ** params.shininess.astype(dtype)
+    return (color * (params.ambient.astype(dtype) * ambient + params.diffuse.astype(dtype) * n_dot_l)
+            + specular)
+
+
+def unlit(color, gradient, light, view, ambient, params):
+    """Emission only: the colour scaled by the ambient factor (1 without an ambient volume)."""
+    del gradient, light, view, params
+    return color * ambient
+
+
+class Shader(NamedTuple):
+    fn: Callable
+    needs_gradient: bool
+
+
+SHADERS: dict[str, Shader] = {
+    "none": Shader(unlit, needs_gradient=False),
+    "phong": Shader(blinn_phong, needs_gradient=True),
+}

@@ -1,0 +1,221 @@
+r"""Transfer functions: classification of intensities into colour and opacity.
+
+A :class:`TransferFunction` is piecewise linear in the intensity: between
+control points ``points[k]`` the RGB colour and the opacity are interpolated
+linearly, and beyond the outermost points they are held constant. Every control
+value (positions, colours, opacities) is an array leaf, so the image is
+differentiable with respect to all of them.
+
+Opacities are given for a *reference step* ``step0`` (mm, default 1 mm = one
+voxel at unit spacing). A sample that stands for a segment of length
+$\Delta s$ gets the corrected opacity
+
+$$ \alpha = 1 - (1 - \alpha_0)^{\Delta s / \Delta s_0} = 1 - e^{-\tau \Delta s},
+\qquad \tau = -\ln(1 - \alpha_0) / \Delta s_0, $$
+
+(opacity correction), so the rendered physics does not depend on the sampling
+rate.
+
+A *feature* (used by feature-driven ambient occlusion) is either a transfer
+function of its own or an :class:`IntervalFeature`, an intensity interval that
+selects the part of a base transfer function's opacity lying inside it.
+"""
+
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from . import _checks
+from ._numerics import correct_opacity, log1m
+from ._types import Array, Float
+
+_WHERE = "volshade.TransferFunction"
+
+
+class TransferFunction(eqx.Module):
+    """Piecewise-linear 1D transfer function (intensity -> RGB colour, opacity).
+
+    Attributes:
+        points: ``(K,)`` increasing intensity positions of the control points.
+        colors: ``(K, 3)`` RGB colours in [0, 1] at the control points.
+        opacities: ``(K,)`` opacities in [0, 1] for a segment of length ``step0``.
+        step0: reference segment length in mm for ``opacities`` (static).
+
+    Example:
+        >>> tf = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (1.0, 1, 1, 1, 0.5)])
+        >>> float(tf.opacity(jnp.array(0.5)))
+        0.25
+    """
+
+    points: Float[Array, "K"]
+    colors: Float[Array, "K 3"]
+    opacities: Float[Array, "K"]
+    step0: float = eqx.field(static=True, default=1.0)
+
+    def __check_init__(self):
+        k = jnp.shape(self.points)
+        if len(k) != 1 or k[0] < 1:
+            raise ValueError(f"{_WHERE}: `points` must be a non-empty 1-D array, got shape {k}.")
+        if jnp.shape(self.colors) != (k[0], 3):
+            raise ValueError(f"{_WHERE}: `colors` must have shape ({k[0]}, 3) to match `points`, "
+                             f"got {jnp.shape(self.colors)}.")
+        if jnp.shape(self.opacities) != k:
+            raise ValueError(f"{_WHERE}: `opacities` must have shape {k} to match `points`, "
+                             f"got {jnp.shape(self.opacities)}.")
+        _checks.positive_float(self.step0, "step0", _WHERE)
+
+    @classmethod
+    def from_points(
+        cls, points: Sequence[Sequence[float]], *, step0: float = 1.0, dtype=None
+    ) -> "TransferFunction":
+        """Build from rows ``(intensity, r, g, b, opacity)`` with increasing intensities.
+
+        Raises:
+            ValueError: rows not of length 5, intensities not strictly increasing,
+                colours or opacities outside [0, 1], or non-finite values.
+        """
+        where = "volshade.TransferFunction.from_points"
+        table = np.asarray(points, dtype=float)
+        if table.ndim != 2 or table.shape[1] != 5 or table.shape[0] < 1:
+            raise ValueError(f"{where}: `points` must be rows (intensity, r, g, b, opacity), "
+                             f"got shape {table.shape}.")
+        if not np.all(np.isfinite(table)):
+            raise ValueError(f"{where}: `points` contains NaN or inf.")
+        if np.any(np.diff(table[:, 0]) <= 0):
+            raise ValueError(f"{where}: intensities must be strictly increasing, "
+                             f"got {table[:, 0].tolist()}.")
+        if np.any((table[:, 1:] < 0) | (table[:, 1:] > 1)):
+            raise ValueError(f"{where}: colours and opacities must lie in [0, 1].")
+        dtype = jnp.result_type(float) if dtype is None else dtype
+        return cls(jnp.asarray(table[:, 0], dtype), jnp.asarray(table[:, 1:4], dtype),
+                   jnp.asarray(table[:, 4], dtype), step0=step0)
+
+    def _interp(self, values: Array, table: Array) -> Array:
+        return jnp.interp(values, self.points, table)
+
+    def opacity(self, volume: Float[Array, "*shape"], *, step: float | Array | None = None
+                ) -> Float[Array, "*shape"]:
+        r"""Opacity of each value; with ``step`` (mm), corrected to that segment length."""
+        volume = jnp.asarray(volume)
+        alpha0 = self._interp(volume, self.opacities.astype(volume.dtype))
+        if step is None:
+            return alpha0
+        return correct_opacity(alpha0, jnp.asarray(step, volume.dtype) / self.step0)
+
+    def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
+        r"""Extinction coefficient $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
+        volume = jnp.asarray(volume)
+        return -log1m(self.opacity(volume)) / self.step0
+
+    def color(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape 3"]:
+        """RGB colour of each value, shape ``(*shape, 3)``."""
+        volume = jnp.asarray(volume)
+        return jnp.stack([self._interp(volume, self.colors[:, c].astype(volume.dtype))
+                          for c in range(3)], axis=-1)
+
+    def __call__(self, volume: Float[Array, "*shape"], *, step=None):
+        """``(color, opacity)`` of each value."""
+        return self.color(volume), self.opacity(volume, step=step)
+
+
+class IntervalFeature(eqx.Module):
+    """A feature given by an intensity interval ``[low, high]`` of a base transfer function.
+
+    Its opacity is the base opacity where ``low <= value <= high`` and 0 elsewhere.
+    """
+
+    low: Float[Array, ""]
+    high: Float[Array, ""]
+
+    def __init__(self, low: float, high: float):
+        if not float(low) < float(high):
+            raise ValueError(f"volshade.IntervalFeature: need low < high, got {low}, {high}.")
+        self.low = jnp.asarray(low, dtype=float)
+        self.high = jnp.asarray(high, dtype=float)
+
+    def opacity(self, volume: Array, base: TransferFunction) -> Array:
+        inside = (volume >= self.low) & (volume <= self.high)
+        return jnp.where(inside, base.opacity(volume), 0)
+
+
+Feature = TransferFunction | IntervalFeature
+
+
+def feature_opacities(
+    volume: Float[Array, "D H W"],
+    features: Sequence[Feature],
+    *,
+    base: TransferFunction | None = None,
+) -> Float[Array, "F D H W"]:
+    """Stack the opacity volume of each feature (transfer functions or intervals of ``base``).
+
+    Raises:
+        ValueError: no features, or an interval feature without a ``base``.
+    """
+    where = "volshade.transfer.feature_opacities"
+    volume = _checks.volume(volume, "volume", where)
+    if len(features) == 0:
+        raise ValueError(f"{where}: `features` is empty; pass at least one feature.")
+    out = []
+    for i, feature in enumerate(features):
+        if isinstance(feature, TransferFunction):
+            out.append(feature.opacity(volume))
+        elif isinstance(feature, IntervalFeature):
+            if base is None:
+                raise ValueError(f"{where}: features[{i}] is an interval; pass `base=` "
+                                 f"the transfer function it selects from.")
+            out.append(feature.opacity(volume, base))
+        else:
+            raise TypeError(f"{where}: features[{i}] must be a TransferFunction or "
+                            f"IntervalFeature, got {type(feature).__name__}.")
+    return jnp.stack(out)
+
+
+def _preset_grey() -> TransferFunction:
+    return TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (0.1, 0.3, 0.3, 0.3, 0.0),
+                                         (1.0, 1, 1, 1, 0.3)])
+
+
+def _preset_shells() -> TransferFunction:
+    return TransferFunction.from_points([
+        (0.0, 0.0, 0.0, 0.0, 0.0), (0.15, 0.9, 0.6, 0.3, 0.0), (0.3, 0.9, 0.6, 0.3, 0.04),
+        (0.45, 0.9, 0.6, 0.3, 0.0), (0.5, 0.3, 0.6, 0.9, 0.0), (0.6, 0.3, 0.6, 0.9, 0.15),
+        (0.75, 0.3, 0.6, 0.9, 0.0), (0.85, 0.95, 0.95, 0.9, 0.3), (1.0, 0.95, 0.95, 0.9, 0.9),
+    ])
+
+
+def _preset_head() -> TransferFunction:
+    # Colin27 T1 normalised to [0, 1]: air < 0.05, skull (dark) 0.05-0.12, brain
+    # 0.2-0.35, scalp and its fat 0.2-0.6; a firm skin surface from about 0.15 up.
+    return TransferFunction.from_points([
+        (0.0, 0, 0, 0, 0.0), (0.1, 0.8, 0.55, 0.45, 0.0), (0.2, 0.93, 0.72, 0.6, 0.35),
+        (0.45, 0.97, 0.82, 0.72, 0.6), (1.0, 1.0, 0.95, 0.9, 0.85),
+    ])
+
+
+def _preset_corner() -> TransferFunction:
+    # Intensities of the corner phantom's walls: 0.5 green, 0.75 blue, 1.0 white.
+    return TransferFunction.from_points([
+        (0.0, 0, 0, 0, 0.0), (0.25, 0.1, 0.8, 0.1, 0.0), (0.5, 0.1, 0.8, 0.1, 1.0),
+        (0.625, 0.1, 0.8, 0.1, 1.0), (0.626, 0.1, 0.2, 0.9, 1.0), (0.75, 0.1, 0.2, 0.9, 1.0),
+        (0.875, 0.1, 0.2, 0.9, 1.0), (0.876, 1, 1, 1, 1.0), (1.0, 1, 1, 1, 1.0),
+    ])
+
+
+PRESETS: dict[str, Callable[[], TransferFunction]] = {
+    "grey": _preset_grey,
+    "shells": _preset_shells,
+    "head": _preset_head,
+    "corner": _preset_corner,
+}
+
+
+def preset(name: str) -> TransferFunction:
+    """A named transfer function: ``"grey"``, ``"shells"``, ``"head"`` (Colin27), ``"corner"``.
+
+    Raises:
+        ValueError: unknown name (the message lists the valid ones).
+    """
+    return _checks.option(name, PRESETS, "transfer-function preset", "volshade.transfer.preset")()
