@@ -1,0 +1,60 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from volshade import _numerics as nm
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_values_keep_dtype(dtype):
+    x = jnp.asarray([0.0, 0.25, 1.0], dtype)
+    for fn in (nm.safe_log, nm.log1m, nm.safe_sqrt):
+        assert fn(x).dtype == dtype
+    assert nm.safe_div(x, x).dtype == dtype
+    assert nm.correct_opacity(x, 2.0).dtype == dtype
+
+
+def test_safe_div_singular_point():
+    assert float(nm.safe_div(1.0, 0.0)) == 0.0
+    g_num, g_den = jax.grad(nm.safe_div, argnums=(0, 1))(1.0, 0.0)
+    assert float(g_num) == 0.0 and float(g_den) == 0.0
+    np.testing.assert_allclose(jax.grad(nm.safe_div, argnums=1)(3.0, 2.0), -0.75)
+
+
+def test_safe_log_and_log1m():
+    assert float(nm.safe_log(0.0)) == -np.inf
+    assert float(jax.grad(nm.safe_log)(0.0)) == 0.0
+    np.testing.assert_allclose(jax.grad(nm.safe_log)(2.0), 0.5)
+    assert float(nm.log1m(1.0)) == -np.inf
+    assert float(jax.grad(nm.log1m)(1.0)) == 0.0
+    np.testing.assert_allclose(nm.log1m(1e-12), -1e-12, rtol=1e-12)
+    np.testing.assert_allclose(jax.grad(nm.log1m)(0.5), -2.0)
+
+
+def test_safe_sqrt_norm_normalize_at_zero():
+    assert float(jax.grad(nm.safe_sqrt)(0.0)) == 0.0
+    g = jax.grad(lambda v: nm.safe_norm(v))(jnp.zeros(3))
+    np.testing.assert_array_equal(g, 0.0)
+    np.testing.assert_array_equal(nm.safe_normalize(jnp.zeros(3)), 0.0)
+    jac = jax.jacrev(nm.safe_normalize)(jnp.zeros(3))
+    assert np.all(np.isfinite(jac))
+    np.testing.assert_allclose(nm.safe_normalize(jnp.array([3.0, 0, 4])), [0.6, 0, 0.8])
+
+
+def test_correct_opacity_exact_ends_and_composition_law():
+    # Two half steps compose to one full step: 1 - (1 - a')^2 == a.
+    a = jnp.linspace(0, 1, 11)
+    half = nm.correct_opacity(a, 0.5)
+    np.testing.assert_allclose(1 - (1 - half) ** 2, a, atol=1e-12)
+    assert float(nm.correct_opacity(1.0, 0.3)) == 1.0
+    assert float(nm.correct_opacity(0.0, 0.3)) == 0.0
+    grads = jax.vmap(jax.grad(nm.correct_opacity, argnums=(0, 1)), in_axes=(0, None))(a, 2.0)
+    assert all(np.all(np.isfinite(g)) for g in grads)
+
+
+def test_opacity_from_extinction_and_smoothstep():
+    np.testing.assert_allclose(nm.opacity_from_extinction(2.0, 0.5), 1 - np.exp(-1.0))
+    x = jnp.array([-1.0, 0.4, 0.7, 1.0, 2.0])
+    np.testing.assert_allclose(nm.smoothstep(0.4, 1.0, x), [0, 0, 0.5, 1, 1], atol=1e-12)
+    assert np.isfinite(jax.grad(lambda e: nm.smoothstep(e, e, 0.5))(0.5))

@@ -1,0 +1,80 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from volshade import transfer
+from volshade.transfer import IntervalFeature, TransferFunction, feature_opacities
+
+
+def _tf(dtype=jnp.float64):
+    return TransferFunction.from_points(
+        [(0.0, 0, 0, 0, 0.0), (0.5, 1, 0, 0, 0.4), (1.0, 0, 0, 1, 0.8)], dtype=dtype)
+
+
+def test_piecewise_linear_values():
+    tf = _tf()
+    x = jnp.array([-1.0, 0.0, 0.25, 0.5, 0.75, 1.0, 2.0])
+    np.testing.assert_allclose(tf.opacity(x), [0, 0, 0.2, 0.4, 0.6, 0.8, 0.8])
+    np.testing.assert_allclose(tf.color(jnp.array(0.75)), [0.5, 0, 0.5])
+
+
+def test_opacity_correction_matches_extinction():
+    tf = _tf()
+    x = jnp.linspace(0, 1, 9)
+    for step in (0.25, 1.0, 3.0):
+        np.testing.assert_allclose(tf.opacity(x, step=step),
+                                   1 - np.exp(-tf.extinction(x) * step), rtol=1e-12, atol=1e-15)
+
+
+def test_transfer_function_under_jit_vmap_grad():
+    tf = _tf()
+    x = jnp.linspace(0, 1, 5)
+    np.testing.assert_allclose(jax.jit(lambda t, v: t.opacity(v, step=0.5))(tf, x),
+                               tf.opacity(x, step=0.5))
+    batch = jax.vmap(lambda o: TransferFunction(tf.points, tf.colors, o).opacity(x))(
+        jnp.stack([tf.opacities, 2 * tf.opacities / 3]))
+    np.testing.assert_allclose(batch[1], 2 * batch[0] / 3)
+    g = jax.grad(lambda t: jnp.sum(t.opacity(x, step=2.0)))(tf)
+    assert np.all(np.isfinite(g.opacities)) and np.all(np.isfinite(g.points))
+    assert float(jnp.sum(jnp.abs(g.opacities))) > 0
+
+
+def test_from_points_errors():
+    with pytest.raises(ValueError, match="strictly increasing"):
+        TransferFunction.from_points([(0.5, 0, 0, 0, 0), (0.2, 0, 0, 0, 0)])
+    with pytest.raises(ValueError, match="rows"):
+        TransferFunction.from_points([(0.5, 0, 0, 0)])
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        TransferFunction.from_points([(0.0, 0, 0, 0, 1.5)])
+    with pytest.raises(ValueError, match="NaN"):
+        TransferFunction.from_points([(np.nan, 0, 0, 0, 0.5)])
+    with pytest.raises(ValueError, match="colors"):
+        TransferFunction(jnp.zeros(2), jnp.zeros((3, 3)), jnp.zeros(2))
+    with pytest.raises(ValueError, match="step0"):
+        TransferFunction(jnp.zeros(1), jnp.zeros((1, 3)), jnp.zeros(1), step0=0.0)
+
+
+def test_presets_and_unknown_preset():
+    for name in transfer.PRESETS:
+        tf = transfer.preset(name)
+        op = tf.opacity(jnp.linspace(0, 1, 50))
+        assert float(op.min()) >= 0 and float(op.max()) <= 1
+    with pytest.raises(ValueError, match="unknown transfer-function preset 'bone'.*'grey'"):
+        transfer.preset("bone")
+
+
+def test_features():
+    tf = _tf()
+    vol = jnp.linspace(0, 1, 27).reshape(3, 3, 3)
+    ops = feature_opacities(vol, [IntervalFeature(0.0, 0.5), tf], base=tf)
+    assert ops.shape == (2, 3, 3, 3)
+    expected_low = np.where(np.asarray(vol) <= 0.5, np.asarray(tf.opacity(vol)), 0)
+    np.testing.assert_allclose(ops[0], expected_low)
+    np.testing.assert_allclose(ops[1], tf.opacity(vol))
+    with pytest.raises(ValueError, match="base"):
+        feature_opacities(vol, [IntervalFeature(0.0, 0.5)])
+    with pytest.raises(ValueError, match="empty"):
+        feature_opacities(vol, [])
+    with pytest.raises(ValueError, match="low < high"):
+        IntervalFeature(0.5, 0.5)
