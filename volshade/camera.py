@@ -120,13 +120,13 @@ class Camera(eqx.Module):
         y = 1 - 2 * (jnp.arange(h, dtype=dtype) + 0.5) / h
         x = (2 * (jnp.arange(w, dtype=dtype) + 0.5) / w - 1) * (w / h)
         yy, xx = jnp.meshgrid(y, x, indexing="ij")
-        offset = xx[..., None] * right + yy[..., None] * up
+        offset = xx[..., None] * right[None, None] + yy[..., None] * up[None, None]
         if self.projection == "perspective":
             half = jnp.tan(jnp.deg2rad(self.fov) / 2)
-            directions = safe_normalize(forward + half * offset)
+            directions = safe_normalize(forward[None, None] + half * offset)
             origins = jnp.broadcast_to(self.eye, directions.shape)
         else:
-            origins = self.eye + 0.5 * self.width * offset
+            origins = self.eye[None, None] + 0.5 * self.width * offset
             directions = jnp.broadcast_to(forward, origins.shape)
         return origins, directions
 
@@ -148,6 +148,7 @@ def intersect_box(
     ``t_far <= t_near``. Direction components equal to 0 are handled exactly
     (no division by zero, finite gradients).
     """
+    half_extent = jnp.broadcast_to(half_extent, origins.shape)
     moving = directions != 0
     inside = jnp.abs(origins) <= half_extent
     t1 = safe_div(-half_extent - origins, directions)

@@ -89,14 +89,16 @@ def march(
                              f"{(*volume.shape, 3)}, got {ambient.shape}.")
         ambient = _checks.finite(ambient, "ambient", where)
     phong = Phong() if phong is None else phong
-    bg = jnp.broadcast_to(jnp.asarray(background, dtype), (3,))
 
     half_extent, scale = box_half_extent(volume.shape, spacing)
     half_extent = half_extent.astype(dtype)
     origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())
     batch = origins.shape[:-1]
+    bg = jnp.broadcast_to(jnp.asarray(background, dtype), (*batch, 3))
     t_near, t_far = intersect_box(origins, directions, half_extent)
-    length = jnp.maximum(t_far - t_near, 0)
+    hit = t_far > t_near
+    length = jnp.where(hit, t_far - t_near, 0)
+    t_near = jnp.where(hit, t_near, 0)  # a missed ray may carry t = +-max: keep positions finite
     dt = jnp.asarray(step / scale, dtype)
     to_index = jnp.asarray(scale / np.asarray(spacing), dtype)
     gradient = regression_gradient(volume, spacing=spacing, size=3) if shader.needs_gradient \
@@ -106,7 +108,8 @@ def march(
     def body(state, k):
         seg = jnp.clip(length - k * dt, 0, dt)
         t_mid = t_near + k * dt + 0.5 * seg
-        index = (origins + t_mid[..., None] * directions + half_extent) * to_index - 0.5
+        index = (origins + t_mid[..., None] * directions + half_extent[None, None]) \
+            * to_index[None, None] - 0.5
         value = trilinear(volume, index, mode="nearest")
         color, alpha = transfer(value, step=seg * scale)
         amb = jnp.ones((*batch, 1), dtype) if ambient is None else \

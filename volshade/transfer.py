@@ -93,13 +93,14 @@ class TransferFunction(eqx.Module):
                    jnp.asarray(table[:, 4], dtype), step0=step0)
 
     def _interp(self, values: Array, table: Array) -> Array:
-        return jnp.interp(values, self.points, table)
+        # Classification follows the volume's dtype, whatever the control values' dtype.
+        return jnp.interp(values, self.points.astype(values.dtype), table.astype(values.dtype))
 
     def opacity(self, volume: Float[Array, "*shape"], *, step: float | Array | None = None
                 ) -> Float[Array, "*shape"]:
         r"""Opacity of each value; with ``step`` (mm), corrected to that segment length."""
         volume = jnp.asarray(volume)
-        alpha0 = self._interp(volume, self.opacities.astype(volume.dtype))
+        alpha0 = self._interp(volume, self.opacities)
         if step is None:
             return alpha0
         return correct_opacity(alpha0, jnp.asarray(step, volume.dtype) / self.step0)
@@ -112,7 +113,7 @@ class TransferFunction(eqx.Module):
     def color(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape 3"]:
         """RGB colour of each value, shape ``(*shape, 3)``."""
         volume = jnp.asarray(volume)
-        return jnp.stack([self._interp(volume, self.colors[:, c].astype(volume.dtype))
+        return jnp.stack([self._interp(volume, self.colors[:, c])
                           for c in range(3)], axis=-1)
 
     def __call__(self, volume: Float[Array, "*shape"], *, step=None):

@@ -1,0 +1,206 @@
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from helpers import check_grad_fd
+from volshade.camera import Camera, box_half_extent, intersect_box
+from volshade.render import march, n_samples, save_png
+from volshade.transfer import TransferFunction, preset
+
+
+def _constant_tf(alpha0, color=(0.2, 0.6, 1.0), dtype=jnp.float64):
+    return TransferFunction.from_points([(0.0, *color, alpha0), (1.0, *color, alpha0)], dtype=dtype)
+
+
+def _ortho_along_h(image_shape=(6, 6), width=1.5):
+    # Azimuth 0, elevation 0: parallel rays along -h.
+    return Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=image_shape,
+                        projection="orthographic", width=width)
+
+
+def _smooth_volume(n=10, seed=0):
+    rng = np.random.default_rng(seed)
+    x = np.linspace(-1, 1, n)
+    d, h, w = np.meshgrid(x, x, x, indexing="ij")
+    c = rng.uniform(-0.3, 0.3, 3)
+    vol = np.exp(-((d - c[0]) ** 2 + (h - c[1]) ** 2 + (w - c[2]) ** 2) * 2.5)
+    return jnp.asarray(vol)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_empty_volume_renders_background_exactly(dtype):
+    bg = (0.25, 0.5, 0.75)
+    img = march(jnp.zeros((8, 9, 10), dtype), preset("grey"), Camera.orbit(image_shape=(7, 5)),
+                background=bg, shading="phong")
+    assert img.dtype == dtype
+    np.testing.assert_array_equal(img[..., :3], np.broadcast_to(np.asarray(bg, dtype), (7, 5, 3)))
+    np.testing.assert_array_equal(img[..., 3], 0)
+
+
+@pytest.mark.parametrize("step", [0.3, 1.0, 1.7])
+def test_uniform_slab_matches_beer_lambert(step):
+    alpha0 = 0.1
+    tau = -np.log1p(-alpha0)
+    shape, spacing = (8, 12, 10), (1.0, 1.5, 0.8)
+    color = np.array([0.2, 0.6, 1.0])
+    img = march(jnp.full(shape, 0.5), _constant_tf(alpha0), _ortho_along_h(), spacing=spacing,
+                step=step)
+    # Rays along h that hit the box cross it completely: 12 voxels of 1.5 mm.
+    origins, dirs = _ortho_along_h().rays()
+    t0, t1 = intersect_box(origins, dirs, box_half_extent(shape, spacing)[0])
+    hit = np.asarray(t1 > t0)
+    assert hit.sum() > 0 and (~hit).sum() > 0
+    expected_alpha = 1 - np.exp(-tau * shape[1] * spacing[1])
+    np.testing.assert_allclose(np.asarray(img[..., 3])[hit], expected_alpha, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(img[..., :3])[hit], np.broadcast_to(expected_alpha * color, (hit.sum(), 3)), atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(img[..., 3])[~hit], 0)
+
+
+def test_uniform_slab_oblique_rays_match_path_lengths():
+    alpha0, shape = 0.05, (10, 10, 10)
+    cam = Camera.orbit(azimuth=33.0, elevation=21.0, image_shape=(9, 9))
+    img = march(jnp.full(shape, 0.5), _constant_tf(alpha0), cam, step=0.7)
+    origins, dirs = cam.rays()
+    t0, t1 = intersect_box(origins, dirs, box_half_extent(shape, (1, 1, 1))[0])
+    path_mm = np.maximum(np.asarray(t1 - t0), 0) * 10.0
+    np.testing.assert_allclose(img[..., 3], 1 - (1 - alpha0) ** path_mm, atol=1e-5)
+
+
+def test_opacity_correction_converges_as_step_shrinks():
+    vol = _smooth_volume(12)
+    tf = TransferFunction.from_points([(0.0, 0.1, 0.2, 0.3, 0.0), (0.5, 1.0, 0.5, 0.2, 0.2),
+                                       (1.0, 1.0, 1.0, 1.0, 0.6)])
+    cam = Camera.orbit(azimuth=20.0, elevation=15.0, image_shape=(10, 10))
+    steps = [2.0, 1.0, 0.5, 0.25]
+    finest = march(vol, tf, cam, step=0.0625)
+    errors = [float(jnp.max(jnp.abs(march(vol, tf, cam, step=s) - finest))) for s in steps]
+    assert all(a > b for a, b in zip(errors, errors[1:], strict=False)), errors
+    assert errors[-1] < 0.2 * errors[0]
+
+
+def test_gradient_wrt_transfer_function_matches_finite_differences():
+    vol = _smooth_volume(8)
+    tf = TransferFunction.from_points([(0.0, 0.1, 0.2, 0.3, 0.05), (0.5, 1.0, 0.5, 0.2, 0.3),
+                                       (1.0, 0.9, 0.9, 1.0, 0.7)])
+    cam = Camera.orbit(azimuth=25.0, elevation=10.0, image_shape=(6, 6))
+    weights = jnp.asarray(np.random.default_rng(3).random((6, 6, 4)))
+
+    def loss_of(field):
+        @jax.jit
+        def loss(values):
+            t = eqx.tree_at(lambda t: getattr(t, field), tf, values.reshape(getattr(tf, field).shape))
+            return jnp.sum(weights * march(vol, t, cam, step=0.5, shading="phong"))
+        return loss
+
+    for field in ("opacities", "colors"):
+        g = check_grad_fd(loss_of(field), getattr(tf, field).ravel(), rtol=1e-4)
+        assert float(jnp.max(jnp.abs(g))) > 0
+
+
+def test_jit_vmap_grad_of_march():
+    vol = _smooth_volume(8)
+    tf = preset("grey")
+    cam = Camera.orbit(azimuth=10.0, image_shape=(5, 4))
+    eager = march(vol, tf, cam)
+    jitted = eqx.filter_jit(march)(vol, tf, cam)
+    np.testing.assert_allclose(jitted, eager, atol=1e-12)
+    # vmap over volumes and over cameras; grads w.r.t. the volume and the camera.
+    vols = jnp.stack([vol, 0.5 * vol])
+    batched = jax.vmap(lambda v: march(v, tf, cam))(vols)
+    np.testing.assert_allclose(batched[1], march(0.5 * vol, tf, cam), atol=1e-12)
+    cams = jax.vmap(lambda a: Camera.orbit(azimuth=a, image_shape=(5, 4)))(jnp.array([10.0, 50.0]))
+    per_cam = eqx.filter_vmap(lambda c: march(vol, tf, c))(cams)
+    np.testing.assert_allclose(per_cam[0], eager, atol=1e-12)
+    g = jax.jit(jax.grad(lambda v: jnp.sum(march(v, tf, cam, shading="phong"))))(vol)
+    assert np.all(np.isfinite(g)) and float(jnp.sum(jnp.abs(g))) > 0
+    g_cam = jax.jit(jax.grad(
+        lambda a: jnp.sum(march(vol, tf, Camera.orbit(azimuth=a, image_shape=(5, 4))))))(20.0)
+    assert np.isfinite(g_cam)
+
+
+@pytest.mark.parametrize("shading", ["none", "phong"])
+def test_no_nan_gradients_on_edge_volumes(shading):
+    tf = TransferFunction.from_points([(0.0, 1, 1, 1, 0.0), (1.0, 1, 1, 1, 1.0)])
+    cam = Camera.orbit(azimuth=30.0, elevation=20.0, image_shape=(3, 3))
+
+    @jax.jit
+    def image_and_derivatives(vol, t):
+        img = march(vol, t, cam, shading=shading)
+        jac = jax.jacrev(lambda v: march(v, t, cam, shading=shading))(vol)
+        g_tf = jax.grad(lambda u: jnp.sum(march(vol, u, cam, shading=shading)))(t)
+        return img, jac, g_tf
+
+    for vol in (jnp.zeros((5, 5, 5)), jnp.ones((5, 5, 5)), jnp.zeros((5, 5, 5)).at[0, 0, 0].set(1.0),
+                jnp.ones((1, 1, 1))):
+        for leaf in jax.tree.leaves(image_and_derivatives(vol, tf)):
+            assert np.all(np.isfinite(leaf))
+
+
+def test_fully_opaque_volume_shows_its_colour():
+    tf = _constant_tf(1.0, color=(0.3, 0.4, 0.5))
+    img = march(jnp.ones((4, 4, 4)), tf, _ortho_along_h(width=0.5), background=(1, 1, 1))
+    np.testing.assert_allclose(img[2, 2], [0.3, 0.4, 0.5, 1.0], atol=1e-12)
+
+
+def test_ambient_volume_scales_unlit_colour():
+    tf = _constant_tf(0.2)
+    vol = jnp.full((6, 6, 6), 0.5)
+    cam = _ortho_along_h(width=0.5)
+    plain = march(vol, tf, cam)
+    half = march(vol, tf, cam, ambient=jnp.full((6, 6, 6), 0.5))
+    np.testing.assert_allclose(half[..., :3], 0.5 * plain[..., :3], atol=1e-12)
+    tint = np.array([1.0, 0.0, 0.5])
+    rgb = march(vol, tf, cam, ambient=jnp.asarray(np.ones((6, 6, 6, 3)) * tint))
+    np.testing.assert_allclose(rgb[..., :3], np.asarray(plain[..., :3]) * tint, atol=1e-12)
+
+
+def test_bad_input_errors(tmp_path):
+    tf, cam = preset("grey"), Camera.orbit(image_shape=(4, 4))
+    with pytest.raises(ValueError, match="3 dimensions"):
+        march(jnp.zeros((4, 4)), tf, cam)
+    with pytest.raises(TypeError, match="dtype"):
+        march(jnp.zeros((4, 4, 4), jnp.complex64), tf, cam)
+    with pytest.raises(ValueError, match="empty"):
+        march(jnp.zeros((0, 4, 4)), tf, cam)
+    with pytest.raises(Exception, match="NaN or inf"):
+        march(jnp.full((4, 4, 4), jnp.nan), tf, cam)
+    with pytest.raises(Exception, match="NaN or inf"):
+        eqx.filter_jit(march)(jnp.zeros((4, 4, 4)).at[1, 1, 1].set(jnp.inf), tf, cam)
+    with pytest.raises(ValueError, match="step"):
+        march(jnp.zeros((4, 4, 4)), tf, cam, step=0.0)
+    with pytest.raises(ValueError, match="spacing"):
+        march(jnp.zeros((4, 4, 4)), tf, cam, spacing=(1.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="unknown shading 'gouraud'"):
+        march(jnp.zeros((4, 4, 4)), tf, cam, shading="gouraud")
+    with pytest.raises(ValueError, match="unknown composition"):
+        march(jnp.zeros((4, 4, 4)), tf, cam, composition="mip")
+    with pytest.raises(ValueError, match="ambient"):
+        march(jnp.zeros((4, 4, 4)), tf, cam, ambient=jnp.zeros((4, 4, 5)))
+    with pytest.raises(ValueError, match="image_shape"):
+        Camera.orbit(image_shape=(0, 4))
+    with pytest.raises(ValueError, match="projection"):
+        Camera.orbit(projection="fisheye")
+    with pytest.raises(ValueError, match="NaN"):
+        save_png(tmp_path / "x.png", jnp.full((2, 2, 3), jnp.nan))
+
+
+def test_camera_geometry_and_png(tmp_path):
+    cam = Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=(3, 5), distance=2.0)
+    forward, right, up = cam.basis()
+    np.testing.assert_allclose(forward, [0, -1, 0], atol=1e-7)
+    np.testing.assert_allclose(up, [1, 0, 0], atol=1e-7)
+    np.testing.assert_allclose(right, [0, 0, -1], atol=1e-7)
+    origins, dirs = cam.rays()
+    np.testing.assert_allclose(jnp.linalg.norm(dirs, axis=-1), 1.0, rtol=1e-6)
+    assert float(dirs[0, 2, 0]) > 0 > float(dirs[2, 2, 0])  # row 0 looks up
+    top = Camera.orbit(elevation=90.0, image_shape=(3, 3))
+    assert np.all(np.isfinite(top.rays()[1]))
+    np.testing.assert_allclose(top.basis()[0], [-1, 0, 0], atol=1e-6)
+    assert n_samples((10, 10, 10), (1, 1, 1), 1.0) == 19
+    save_png(tmp_path / "img.png", jnp.ones((4, 6, 4)) * 0.5)
+    from skimage import io
+
+    img = io.imread(tmp_path / "img.png")
+    assert img.shape == (4, 6, 3) and int(img[0, 0, 0]) in (127, 128)
