@@ -58,3 +58,11 @@ def test_opacity_from_extinction_and_smoothstep():
     x = jnp.array([-1.0, 0.4, 0.7, 1.0, 2.0])
     np.testing.assert_allclose(nm.smoothstep(0.4, 1.0, x), [0, 0, 0.5, 1, 1], atol=1e-12)
     assert np.isfinite(jax.grad(lambda e: nm.smoothstep(e, e, 0.5))(0.5))
+
+
+def test_safe_pow_at_zero():
+    assert float(nm.safe_pow(0.0, 3.0)) == 0.0
+    gx, gp = jax.grad(nm.safe_pow, argnums=(0, 1))(0.0, 3.0)
+    assert float(gx) == 0.0 and float(gp) == 0.0
+    np.testing.assert_allclose(nm.safe_pow(2.0, 3.0), 8.0)
+    np.testing.assert_allclose(jax.grad(nm.safe_pow, argnums=1)(2.0, 3.0), 8.0 * np.log(2.0))

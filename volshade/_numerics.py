@@ -93,3 +93,15 @@ def smoothstep(edge0: ArrayLike, edge1: ArrayLike, x: ArrayLike) -> Array:
     """Hermite smoothstep: 0 below ``edge0``, 1 above ``edge1``, ``3t^2 - 2t^3`` between."""
     t = jnp.clip(safe_div(jnp.asarray(x) - edge0, jnp.asarray(edge1) - edge0), 0, 1)
     return t * t * (3 - 2 * t)
+
+
+def safe_pow(x: ArrayLike, p: ArrayLike) -> Array:
+    """``x ** p`` for ``x >= 0`` whose gradients stay finite at ``x = 0``.
+
+    At ``x = 0`` the value is 0 (for ``p > 0``) and both gradients are 0, where
+    ``jnp.power`` gives ``0 * log(0) = NaN`` for the gradient in ``p``.
+    """
+    x = jnp.asarray(x)
+    positive = x > 0
+    safe_x = jnp.where(positive, x, jnp.ones_like(x))
+    return jnp.where(positive, jnp.exp(p * jnp.log(safe_x)), jnp.zeros_like(safe_x))

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._numerics import safe_normalize
+from ._numerics import safe_normalize, safe_pow
 from ._types import Array, Float
 
 
@@ -67,10 +67,9 @@ def blinn_phong(
     half = safe_normalize(light + view)
     n_dot_l = jnp.abs(jnp.sum(normal * light, axis=-1, keepdims=True))
     n_dot_h = jnp.abs(jnp.sum(normal * half, axis=-1, keepdims=True))
-    dtype = color.dtype
-    specular = params.specular.astype(dtype) * n_dot_h ** params.shininess.astype(dtype)
-    return (color * (params.ambient.astype(dtype) * ambient + params.diffuse.astype(dtype) * n_dot_l)
-            + specular)
+    ka, kd, ks, n = (jnp.asarray(p, color.dtype) for p in
+                     (params.ambient, params.diffuse, params.specular, params.shininess))
+    return color * (ka * ambient + kd * n_dot_l) + ks * safe_pow(n_dot_h, n)
 
 
 def unlit(color, gradient, light, view, ambient, params):

@@ -1,0 +1,38 @@
+import pathlib
+
+import pytest
+from skimage import io
+
+from volshade import cli
+
+
+def test_render_command_writes_a_png(tmp_path):
+    out = tmp_path / "shells.png"
+    rc = cli.main(["render", "shells", "--out", str(out), "--size", "16", "--image", "24",
+                   "--preset", "shells", "--shading", "phong"])
+    assert rc == 0
+    img = io.imread(out)
+    assert img.shape == (24, 24, 3)
+    assert img.std() > 5  # not a blank frame: the phantom is visible against the background
+
+
+def test_demo_writes_pngs(tmp_path, monkeypatch):
+    monkeypatch.setenv("VOLSHADE_DATA", str(tmp_path / "nothing-here"))
+    monkeypatch.setattr("volshade.data._DEBIAN_CH2", tmp_path / "no-ch2.nii.gz")
+    rc = cli.main(["demo", "--out", str(tmp_path / "demo"), "--size", "16", "--image", "20"])
+    assert rc == 0
+    pngs = sorted(p.name for p in pathlib.Path(tmp_path / "demo").glob("*.png"))
+    assert "shells_phong.png" in pngs and "shells_side_by_side.png" in pngs
+
+
+def test_cli_errors(tmp_path, capsys):
+    assert cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--preset", "nope",
+                     "--size", "8", "--image", "8"]) == 2
+    assert "unknown transfer-function preset 'nope'" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="unknown volume"):
+        cli.main(["render", "teapot", "--out", str(tmp_path / "x.png")])
+    with pytest.raises(SystemExit, match="--size must be >= 1"):
+        cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--size", "0"])
+    assert cli.main(["render", str(tmp_path / "missing.nii.gz"), "--out",
+                     str(tmp_path / "x.png")]) == 2
+    assert "missing.nii.gz" in capsys.readouterr().err
