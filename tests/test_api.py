@@ -1,0 +1,38 @@
+"""The public API: what a notebook sees, introspected."""
+
+import inspect
+
+import volshade as vs
+
+
+def _public_callables():
+    for name in dir(vs):
+        if name.startswith("_"):
+            continue
+        obj = getattr(vs, name)
+        if inspect.isfunction(obj):
+            yield name, obj
+
+
+def test_options_are_keyword_only():
+    # Public kernels take their data positionally and every option by keyword.
+    data_args = {"render": 2, "composite": 2, "save_png": 2, "regression_gradient": 1,
+                 "lao": 1, "obscurance": 1, "saliency": 1, "feature_ao": 1,
+                 "viewpoint_saliency": 3, "modulate_opacity": 2}
+    for name, fn in _public_callables():
+        params = list(inspect.signature(fn).parameters.values())
+        positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+        allowed = data_args.get(name, 1)
+        assert len(positional) <= allowed, f"vs.{name} takes options positionally: {positional}"
+
+
+def test_no_rng_argument_names():
+    for name, fn in _public_callables():
+        assert "rng" not in inspect.signature(fn).parameters, f"vs.{name}: call it `key`"
+
+
+def test_public_functions_have_docstrings():
+    for name, fn in _public_callables():
+        assert fn.__doc__ and len(fn.__doc__.strip()) > 20, f"vs.{name} has no docstring"
+    for cls in (vs.Scene, vs.Camera, vs.TransferFunction, vs.Phong):
+        assert cls.__doc__
