@@ -1,0 +1,101 @@
+"""Obscurance cost against the number of directions and against d_max (Ruiz et al. 2008).
+
+Cases, all in one run on a random volume (float32):
+
+* ``dirs=12|42|162`` at d_max 64: the paper's Table 1 grows 1 : 3.2 : 11.6;
+* ``d_max=8|64|256`` at 42 directions: the sparse-table search is independent of
+  d_max (goal: t(256) / t(8) <= 1.5);
+* ``march d_max=8|64`` at 12 directions: a naive d_max-step march along the same
+  sheared digital lines, for comparison (it grows linearly in d_max).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from volshade.directions import icosphere
+from volshade.obscurance import _from_frame, _line_groups, _shear, _to_frame, _unshear, obscurance
+
+from ._timing import time_fn
+
+
+def _march(density, dirs, d_max: int):
+    """Naive obscurance (sqrt rho): for each direction, step ``d_max`` voxels ahead."""
+    dirs = np.asarray(dirs, dtype=np.float64)
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    dtype = density.dtype
+    total = jnp.zeros(density.shape, dtype)
+    for g in _line_groups(dirs, density.shape):
+        frame = _to_frame(density, g.axis, g.sign)
+
+        def body(acc, tables, frame=frame, g=g):
+            off_b, off_c, step = tables
+            cols = _shear(frame, off_b, off_c, g.range_b, g.range_c, -jnp.inf)
+            n = cols.shape[0]
+            padded = jnp.concatenate([cols, jnp.full(cols.shape, -jnp.inf, dtype)])
+
+            def march(t, carry):
+                found = carry
+                ahead = jax.lax.dynamic_slice_in_dim(padded, t, n, axis=0)
+                hit = (found == 0) & (ahead > cols) & (t * step <= d_max)
+                return jnp.where(hit, t, found)
+
+            found = jax.lax.fori_loop(1, d_max + 1, march, jnp.zeros(cols.shape, jnp.int32))
+            steps = _unshear(found, off_b, off_c, frame.shape[1], frame.shape[2])
+            dist = steps.astype(dtype) * step
+            value = jnp.where(steps > 0, jnp.sqrt(dist / d_max), 1.0)
+            return acc + value, None
+
+        acc, _ = jax.lax.scan(body, jnp.zeros(frame.shape, dtype),
+                              (jnp.asarray(g.off_b), jnp.asarray(g.off_c),
+                               jnp.asarray(g.step, dtype)))
+        total = total + _from_frame(acc, g.axis, g.sign)
+    return total / len(dirs)
+
+
+def run(quick: bool) -> dict:
+    n = 64 if quick else 128
+    repeats = 3 if quick else 5
+    vol = jnp.asarray(np.random.default_rng(0).random((n, n, n)), jnp.float32)
+    rows = []
+
+    def fast(level):
+        dirs = icosphere(level)
+        return jax.jit(lambda v, dm: obscurance(v, directions=dirs, d_max=dm, rho="sqrt"))
+
+    by_dirs = {}
+    for level, count in ((0, 12), (1, 42), (2, 162)):
+        timing = time_fn(fast(level), vol, jnp.float32(64.0), repeats=repeats)
+        by_dirs[count] = timing["median_s"]
+        rows.append({"case": f"dirs={count} d_max=64", "median_s": timing["median_s"],
+                     "first_call_s": timing["first_call_s"]})
+    by_dmax = {}
+    f42 = fast(1)
+    for d_max in (8, 64, 256):
+        timing = time_fn(f42, vol, jnp.float32(d_max), repeats=repeats)
+        by_dmax[d_max] = timing["median_s"]
+        rows.append({"case": f"dirs=42 d_max={d_max}", "median_s": timing["median_s"],
+                     "first_call_s": timing["first_call_s"]})
+    by_march = {}
+    dirs12 = icosphere(0)
+    for d_max in (8, 64):
+        march = jax.jit(lambda v, d_max=d_max: _march(v, dirs12, d_max))
+        timing = time_fn(march, vol, repeats=repeats)
+        by_march[d_max] = timing["median_s"]
+        rows.append({"case": f"march dirs=12 d_max={d_max}", "median_s": timing["median_s"],
+                     "first_call_s": timing["first_call_s"]})
+    return {
+        "title": f"obscurance (sparse-table search) on a random {n}^3 float32 volume",
+        "sizes": {"volume": [n, n, n], "directions": [12, 42, 162], "d_max": [8, 64, 256]},
+        "rows": rows,
+        "ratios": {
+            "dirs 42/12 (paper 3.2)": by_dirs[42] / by_dirs[12],
+            "dirs 162/12 (paper 11.6)": by_dirs[162] / by_dirs[12],
+            "d_max 256/8 (goal <= 1.5)": by_dmax[256] / by_dmax[8],
+            "d_max 64/8": by_dmax[64] / by_dmax[8],
+            "march d_max 64/8": by_march[64] / by_march[8],
+            "march/fast at d_max 64, 12 dirs": by_march[64] / by_dirs[12],
+        },
+        "notes": "d_max is a traced scalar: one compiled program serves every d_max; "
+                 "the march is compiled per d_max.",
+    }

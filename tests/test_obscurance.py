@@ -1,0 +1,291 @@
+"""Obscurances (Ruiz et al. 2008): exact agreement with a per-voxel march, corner phantom
+properties, display controls, jit / vmap / grad and input errors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import reference_obscurance as ref
+from helpers import check_grad_fd
+
+from volshade.directions import fibonacci, icosphere
+from volshade.obscurance import (
+    RHO_FUNCTIONS,
+    obscurance,
+    obscurance_shading,
+    occluder_distances,
+    threshold,
+)
+
+RHOS = tuple(RHO_FUNCTIONS)
+DIRS12 = np.asarray(icosphere(0))
+DIRS42 = np.asarray(icosphere(1))
+
+
+def random_volume(shape, seed, *, levels=None):
+    rng = np.random.default_rng(seed)
+    if levels:  # many ties: exercises "strictly greater"
+        return rng.integers(0, levels, size=shape).astype(np.float64)
+    return rng.random(shape)
+
+
+def corner(n, thickness=2):
+    """Corner phantom: opacity 1 on three walls (d: white, h: blue, w: green), 0 elsewhere."""
+    alpha = np.zeros((n, n, n))
+    colors = np.zeros((n, n, n, 3))
+    for axis, rgb in ((0, (1.0, 1.0, 1.0)), (1, (0.0, 0.0, 1.0)), (2, (0.0, 1.0, 0.0))):
+        idx = [slice(None)] * 3
+        idx[axis] = slice(0, thickness)
+        alpha[tuple(idx)] = 1.0
+        colors[tuple(idx)] = rgb
+    return jnp.asarray(alpha), jnp.asarray(colors)
+
+
+# ------------------------------------------------------------------ agreement with reference
+
+
+def assert_same_distances(fast, want):
+    """Same occluders (inf pattern, step counts); lengths equal up to the last bit of |s|."""
+    np.testing.assert_array_equal(np.isinf(fast), np.isinf(want))
+    np.testing.assert_allclose(fast, want, rtol=1e-15, atol=0)
+
+
+@pytest.mark.parametrize(("shape", "seed", "levels", "dirs"), [
+    ((12, 12, 12), 0, None, DIRS12), ((12, 12, 12), 0, None, DIRS42),
+    ((9, 13, 11), 1, 4, DIRS42), ((16, 7, 10), 2, 2, DIRS12)])
+def test_distances_match_reference_exactly(shape, seed, levels, dirs):
+    vol = random_volume(shape, seed, levels=levels)
+    fast = np.asarray(occluder_distances(jnp.asarray(vol), directions=dirs))
+    assert_same_distances(fast, ref.occluder_distances(vol, dirs))
+
+
+def test_distances_arbitrary_directions_and_axis_aligned():
+    vol = random_volume((10, 12, 9), 3, levels=3)
+    dirs = np.concatenate([np.asarray(fibonacci(17)), np.eye(3), -np.eye(3),
+                           [[1.0, 1.0, 1.0], [-1.0, 1.0, -1.0], [0.3, -0.9, 0.0]]])
+    fast = np.asarray(occluder_distances(jnp.asarray(vol), directions=dirs))
+    assert_same_distances(fast, ref.occluder_distances(vol, dirs))
+
+
+@pytest.mark.parametrize(("rho", "dirs"), [(rho, DIRS42) for rho in RHOS] + [("sqrt", DIRS12)])
+def test_obscurance_matches_reference(rho, dirs):
+    vol = random_volume((12, 12, 12), 4)
+    got = obscurance(jnp.asarray(vol), directions=dirs, d_max=5.5, rho=rho)
+    want = ref.obscurance(vol, dirs, 5.5, rho)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("rho", ["linear", "sqrt"])
+def test_colour_bleeding_matches_per_voxel_reference(rho):
+    vol = random_volume((6, 7, 5), 5, levels=3)
+    colors = np.random.default_rng(6).random((6, 7, 5, 3))
+    amb = (0.9, 0.8, 0.7)
+    got = obscurance(jnp.asarray(vol), directions=DIRS12, d_max=3.0, rho=rho,
+                     colors=jnp.asarray(colors), ambient=amb)
+    want = ref.obscurance(vol, DIRS12, 3.0, rho, colors=colors, ambient=amb)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-13)
+
+
+def test_per_voxel_reference_agrees_with_vectorised_reference():
+    vol = random_volume((5, 6, 4), 7, levels=3)
+    dists = ref.occluder_distances(vol, DIRS12)
+    for n in range(len(DIRS12)):
+        q = ref.occluder_index(vol, DIRS12, n)
+        np.testing.assert_array_equal(q[..., 0] >= 0, np.isfinite(dists[n]))
+
+
+# ------------------------------------------------------------------ analytic cases
+
+
+@pytest.mark.parametrize("rho", RHOS)
+def test_no_occluder_gives_exactly_one(rho):
+    # Same shapes and options as the reference tests, so the compiled programs are reused.
+    vol = jnp.full((12, 12, 12), 0.3)  # ties never occlude
+    out = obscurance(vol, directions=DIRS42, d_max=4.0, rho=rho)
+    assert bool(jnp.all(out == 1.0))
+    if rho in ("linear", "sqrt"):
+        rgb = obscurance(jnp.full((6, 7, 5), 0.3), directions=DIRS12, d_max=4.0, rho=rho,
+                         colors=jnp.zeros((6, 7, 5, 3)))
+        assert bool(jnp.all(rgb == 1.0))
+
+
+def test_single_direction_floor_analytic():
+    vol = jnp.zeros((10, 4, 4)).at[8:].set(1.0)
+    dirs = np.array([[1.0, 0.0, 0.0]])
+    out = obscurance(vol, directions=dirs, d_max=6.0, rho="linear")
+    d = np.arange(10)
+    want = np.where(8 - d <= 6, (8 - d) / 6.0, 1.0)
+    want[8:] = 1.0  # wall voxels: nothing denser ahead
+    np.testing.assert_allclose(np.asarray(out[:, 1, 2]), want, atol=1e-15)
+
+
+def test_diagonal_distance_is_steps_times_step_length():
+    vol = jnp.zeros((6, 6, 6)).at[5, 5, 5].set(1.0)
+    d = occluder_distances(vol, directions=np.array([[1.0, 1.0, 1.0]]))
+    np.testing.assert_allclose(float(d[0, 2, 2, 2]), 3 * np.sqrt(3.0), rtol=1e-15)
+    assert float(d[0, 2, 2, 3]) == np.inf
+
+
+def test_user_callable_rho_and_dtype():
+    vol = jnp.asarray(random_volume((8, 8, 8), 8), jnp.float32)
+    got = obscurance(vol, directions=DIRS12, d_max=4.0, rho=lambda d, dm: (d / dm) ** 2)
+    assert got.dtype == jnp.float32
+    want = ref.obscurance(np.asarray(vol, np.float64), DIRS12, 4.0, "linear")
+    assert got.shape == want.shape
+    rgb = obscurance(vol, directions=DIRS12, d_max=4.0, colors=jnp.ones((8, 8, 8, 3), jnp.float32))
+    assert rgb.dtype == jnp.float32 and rgb.shape == (8, 8, 8, 3)
+
+
+# ------------------------------------------------------------------ corner phantom
+
+
+@pytest.fixture(scope="module")
+def corner_results():
+    alpha, colors = corner(24)
+    out = {rho: obscurance(alpha, directions=DIRS42, d_max=8.0, rho=rho) for rho in RHOS}
+    rgb = obscurance(alpha, directions=DIRS42, d_max=8.0, rho="sqrt", colors=colors)
+    return out, rgb
+
+
+def test_corner_green_bleeding(corner_results):
+    _, rgb = corner_results
+    r, g, b = (float(c) for c in rgb[14, 14, 3])  # next to the green wall only
+    assert g > r and g > b
+    r, g, b = (float(c) for c in rgb[14, 3, 14])  # next to the blue wall only
+    assert b > r and b > g
+
+
+def test_corner_darker_than_wall_middle(corner_results):
+    grey, rgb = corner_results
+    for rho in ("sqrt", "linear", "exponential", "ao"):
+        assert float(grey[rho][2, 2, 2]) < float(grey[rho][2, 14, 14])
+    assert float(rgb[2, 2, 2].sum()) < float(rgb[2, 14, 14].sum())
+
+
+def test_sqrt_lighter_than_all_or_nothing_everywhere(corner_results):
+    grey, _ = corner_results
+    assert bool(jnp.all(grey["sqrt"] >= grey["ao"]))
+    assert bool(jnp.all(grey["sqrt"] >= grey["linear"]))
+    assert bool(jnp.any(grey["sqrt"] > grey["ao"]))
+
+
+def test_larger_d_max_is_darker():
+    alpha, _ = corner(16)
+    small = obscurance(alpha, directions=DIRS12, d_max=4.0, rho="ao")
+    large = obscurance(alpha, directions=DIRS12, d_max=12.0, rho="ao")
+    assert bool(jnp.all(large <= small))
+
+
+# ------------------------------------------------------------------ transformations
+
+
+def test_jit_equals_eager_and_one_compilation_for_all_d_max():
+    vol = jnp.asarray(random_volume((10, 10, 10), 9))
+    f = jax.jit(lambda v, dm: obscurance(v, directions=DIRS12, d_max=dm, rho="sqrt"))
+    for dm in (2.0, 7.5, 300.0):
+        np.testing.assert_array_equal(np.asarray(f(vol, dm)),
+                                      np.asarray(obscurance(vol, directions=DIRS12, d_max=dm)))
+    assert f._cache_size() == 1
+
+
+def test_vmap_equals_stacked():
+    vols = jnp.asarray(random_volume((3, 8, 8, 8), 10))
+    dms = jnp.array([2.0, 4.0, 9.0])
+    f = lambda v, dm: obscurance(v, directions=DIRS12, d_max=dm, rho="exponential")
+    batched = jax.vmap(f)(vols, dms)
+    for i in range(3):
+        np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(f(vols[i], dms[i])),
+                                   rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("rho", ["linear", "exponential", "sqrt"])
+def test_grad_d_max_matches_finite_differences(rho):
+    vol = jnp.asarray(random_volume((8, 8, 8), 11))
+    f = jax.jit(lambda dm: jnp.sum(obscurance(vol, directions=DIRS12, d_max=dm, rho=rho) ** 2))
+    g = check_grad_fd(f, jnp.asarray(4.3))
+    assert float(g) < 0  # larger d_max -> lower rho of each occluded direction
+
+
+def test_grad_colours_and_ambient_match_finite_differences():
+    vol = jnp.asarray(random_volume((6, 6, 6), 12, levels=3))
+    colors = jnp.asarray(np.random.default_rng(13).random((6, 6, 6, 3)))
+    w = jnp.asarray(np.random.default_rng(14).random((6, 6, 6, 3)))
+    f = jax.jit(lambda c: jnp.sum(w * obscurance(vol, directions=DIRS12, d_max=3.0, colors=c)))
+    check_grad_fd(f, colors)
+    h = jax.jit(lambda a: jnp.sum(w * obscurance(vol, directions=DIRS12, d_max=3.0,
+                                                 colors=colors, ambient=a)))
+    check_grad_fd(h, jnp.array([1.0, 0.5, 0.2]))
+
+
+def test_grad_density_is_zero_and_finite_at_hard_cases():
+    f = jax.jit(jax.grad(lambda v: jnp.sum(obscurance(v, directions=DIRS12, d_max=3.0))))
+    for vol in (jnp.zeros((6, 6, 6)), jnp.ones((6, 6, 6)), corner(6)[0],
+                jnp.zeros((6, 6, 6)).at[2, 2, 2].set(1.0)):
+        g = f(vol)
+        assert bool(jnp.all(g == 0))
+    jac = jax.jit(jax.jacrev(lambda dm: obscurance(corner(6)[0], directions=DIRS12,
+                                                   d_max=dm)))(1.0)
+    assert bool(jnp.all(jnp.isfinite(jac)))
+
+
+# ------------------------------------------------------------------ display controls
+
+
+def test_threshold_values_and_binary_limit():
+    o = jnp.array([0.0, 0.1, 0.2, 0.5, 0.8, 0.9, 1.0])
+    np.testing.assert_allclose(np.asarray(threshold(o, 0.2, 0.8)),
+                               [0, 0, 0, 0.5, 1, 1, 1], atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(threshold(o, 0.5, 0.5)), [0, 0, 0, 1, 1, 1, 1])
+    np.testing.assert_array_equal(np.asarray(threshold(o, 0.0, 1.0)), np.asarray(o))
+    g = jax.grad(lambda lo: jnp.sum(threshold(o, lo, 0.5)))(0.5)
+    assert np.isfinite(float(g))
+    check_grad_fd(lambda lo: jnp.sum(threshold(o, lo, 0.85) ** 2), jnp.asarray(0.15))
+    assert threshold(o.astype(jnp.float32), 0.2, 0.8).dtype == jnp.float32
+
+
+def test_obscurance_shading_blinn_phong():
+    n = jnp.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    light = jnp.array([0.0, 1.0, 1.0])
+    view = jnp.array([0.0, 0.0, 1.0])
+    obs = jnp.array([0.5, 1.0, 1.0, 1.0])
+    shade = jax.jit(obscurance_shading)
+    out = shade(n, light, view, obs, k_d=0.7, k_s=0.3, shininess=4.0)
+    half = np.array([0.0, 1.0, 1.0 + np.sqrt(2.0)])
+    nh = (half / np.linalg.norm(half))[2]
+    want0 = (0.7 / np.sqrt(2.0) + 0.3 * nh**4) * 0.5
+    np.testing.assert_allclose(np.asarray(out), [want0, 0.0, 0.0, 2 * want0], rtol=1e-14)
+    rgb = shade(n, light, view, jnp.ones((4, 3)) * obs[:, None], k_d=0.7, k_s=0.3, shininess=4.0)
+    np.testing.assert_allclose(np.asarray(rgb), np.asarray(out)[:, None] * np.ones(3), rtol=1e-14)
+    jac = jax.jit(jax.jacrev(lambda x: obscurance_shading(x, light, view, obs, k_s=0.5)))(n)
+    assert bool(jnp.all(jnp.isfinite(jac)))
+
+
+# ------------------------------------------------------------------ errors
+
+
+def test_errors():
+    vol = jnp.zeros((4, 4, 4))
+    with pytest.raises(ValueError, match="density.*3 dimensions"):
+        obscurance(jnp.zeros((4, 4)), directions=DIRS12, d_max=2.0)
+    with pytest.raises(ValueError, match="d_max"):
+        obscurance(vol, directions=DIRS12, d_max=0.0)
+    with pytest.raises(ValueError, match="d_max"):
+        obscurance(vol, directions=DIRS12, d_max=-1)
+    with pytest.raises(ValueError, match="unknown rho 'cubic'.*'sqrt'"):
+        obscurance(vol, directions=DIRS12, d_max=2.0, rho="cubic")
+    with pytest.raises(ValueError, match=r"directions.*\(L, 3\)"):
+        obscurance(vol, directions=np.zeros((0, 3)), d_max=2.0)
+    with pytest.raises(ValueError, match="zero vector"):
+        obscurance(vol, directions=np.zeros((2, 3)), d_max=2.0)
+    with pytest.raises(ValueError, match="colors"):
+        obscurance(vol, directions=DIRS12, d_max=2.0, colors=jnp.zeros((4, 4, 4)))
+    with pytest.raises(TypeError, match="concrete"):
+        jax.jit(lambda d: obscurance(vol, directions=d, d_max=2.0))(jnp.asarray(DIRS12))
+    with pytest.raises(Exception, match="NaN"):
+        obscurance(vol.at[1, 1, 1].set(jnp.nan), directions=DIRS12, d_max=2.0)
+    with pytest.raises(Exception, match="d_max"):
+        jax.jit(lambda dm: obscurance(vol, directions=DIRS12, d_max=dm))(-1.0)
+    with pytest.raises(ValueError, match="low"):
+        threshold(vol, 0.8, 0.2)
+    with pytest.raises(ValueError, match="obscurance"):
+        obscurance_shading(jnp.ones((2, 3)), jnp.ones(3), jnp.ones(3), jnp.ones((3,)))

@@ -1,0 +1,202 @@
+"""Obscurance saliency, viewpoint saliency and opacity modulation (Ruiz et al. 2008, s. 4-5)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import check_grad_fd
+
+from volshade.directions import icosphere
+from volshade.gradient import regression_gradient
+from volshade.obscurance import obscurance
+from volshade.saliency import (
+    least_salient_view,
+    modulate_opacity,
+    most_salient_view,
+    projected_area,
+    saliency,
+    viewpoint_saliency,
+)
+
+VIEWS = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.3, -0.5, 0.8],
+                  [-1.0, -1.0, 1.0], [0.1, 0.2, -0.97]])
+
+
+def reference_viewpoint_saliency(sal, alpha, views, visibility="transmittance"):
+    """Per voxel: walk the digital line towards the viewer, multiply (1 - alpha')."""
+    sal, alpha = np.asarray(sal, np.float64), np.asarray(alpha, np.float64)
+    shape = np.array(alpha.shape)
+    out = []
+    for v in np.asarray(views, np.float64):
+        v = v / np.linalg.norm(v)
+        a = int(np.argmax(np.abs(v)))
+        sign = 1 if v[a] > 0 else -1
+        s = v / abs(v[a])
+        step = np.linalg.norm(s)
+        total = 0.0
+        for p in np.ndindex(*alpha.shape):
+            i = p[a] if sign > 0 else shape[a] - 1 - p[a]
+            trans = 1.0
+            for t in range(1, shape[a]):
+                q = np.array(p) + (np.floor((i + t) * s + 0.5) - np.floor(i * s + 0.5)).astype(int)
+                q[a] = p[a] + sign * t
+                if np.any(q < 0) or np.any(q >= shape):
+                    break
+                trans *= (1 - alpha[tuple(q)]) ** step
+            own = 1 - (1 - alpha[p]) ** step
+            total += sal[p] * (trans if visibility == "transmittance" else trans * own)
+        out.append(total)
+    return np.array(out)
+
+
+def bumpy_cube(n=20):
+    """An opaque cube with a row of bumps on its +w face only."""
+    a = np.zeros((n, n, n))
+    a[5:15, 5:15, 5:15] = 1.0
+    a[6:14:2, 6:14:2, 15:17] = 1.0
+    return jnp.asarray(a)
+
+
+# ------------------------------------------------------------------ voxel saliency
+
+
+def test_linear_field_gradient_exact_and_saliency_uniform():
+    coef = np.array([0.3, -0.2, 0.5])
+    spacing = (1.0, 2.0, 0.5)
+    idx = np.stack(np.meshgrid(*[np.arange(12.0)] * 3, indexing="ij"), -1)
+    field = jnp.asarray(idx @ (coef * np.array(spacing)))  # value per mm along each axis
+    for size in (3, 5):
+        g = regression_gradient(field, spacing=spacing, size=size)
+        np.testing.assert_allclose(np.asarray(g[2:-2, 2:-2, 2:-2]),
+                                   np.broadcast_to(coef, (8, 8, 8, 3)), rtol=1e-12)
+        s = saliency(field, size=size, spacing=spacing)
+        np.testing.assert_allclose(np.asarray(s[2:-2, 2:-2, 2:-2]), 1.0, rtol=1e-12)
+        assert float(s.max()) == pytest.approx(1.0, rel=1e-15)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("value", [0.0, 0.37, 1.0])
+def test_constant_field_saliency_exactly_zero(dtype, value):
+    s = saliency(jnp.full((7, 8, 9), value, dtype))
+    assert s.dtype == dtype
+    assert bool(jnp.all(s == 0))
+    rgb = saliency(jnp.full((7, 8, 9, 3), value, dtype), size=3)
+    assert bool(jnp.all(rgb == 0))
+    g = jax.grad(lambda o: jnp.sum(saliency(o)))(jnp.full((6, 6, 6), value, jnp.float64))
+    assert bool(jnp.all(jnp.isfinite(g)))
+
+
+def test_saliency_range_and_rgb_norm():
+    o = jnp.asarray(np.random.default_rng(0).random((9, 9, 9, 3)))
+    s = saliency(o)
+    assert float(s.min()) >= 0 and float(s.max()) == pytest.approx(1.0)
+    mag = jnp.sqrt(sum(jnp.sum(regression_gradient(o[..., c]) ** 2, -1) for c in range(3)))
+    np.testing.assert_allclose(np.asarray(s), np.asarray(mag / mag.max()), rtol=1e-12)
+
+
+def test_saliency_grad_and_jit():
+    o = jnp.asarray(np.random.default_rng(1).random((8, 8, 8)))
+    w = jnp.asarray(np.random.default_rng(2).random((8, 8, 8)))
+    f = jax.jit(lambda x: jnp.sum(w * saliency(x)))
+    np.testing.assert_allclose(float(f(o)), float(jnp.sum(w * saliency(o))), rtol=1e-13)
+    check_grad_fd(f, o)
+
+
+# ------------------------------------------------------------------ viewpoint saliency
+
+
+@pytest.mark.parametrize("visibility", ["transmittance", "contribution"])
+def test_viewpoint_saliency_matches_per_voxel_reference(visibility):
+    rng = np.random.default_rng(3)
+    sal, alpha = rng.random((5, 6, 4)), 0.6 * rng.random((5, 6, 4))
+    got = viewpoint_saliency(jnp.asarray(sal), jnp.asarray(alpha), VIEWS, visibility=visibility)
+    want = reference_viewpoint_saliency(sal, alpha, VIEWS, visibility)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=1e-12)
+
+
+def test_hidden_detail_visible_from_one_side_only():
+    sal = jnp.zeros((8, 8, 8)).at[1, 4, 4].set(1.0)
+    alpha = jnp.zeros((8, 8, 8)).at[4:].set(1.0)
+    s = viewpoint_saliency(sal, alpha, np.array([[-1.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0]]))
+    np.testing.assert_array_equal(np.asarray(s), [1.0, 0.0, 1.0])
+
+
+def test_best_view_of_asymmetric_phantom():
+    alpha = bumpy_cube()
+    sal = saliency(obscurance(alpha, directions=icosphere(0), d_max=6.0))
+    views = icosphere(1)
+    best = most_salient_view(sal, alpha, views)
+    np.testing.assert_allclose(np.asarray(best), [0.0, 0.0, 1.0], atol=1e-12)
+    assert float(least_salient_view(sal, alpha, views)[2]) < -0.5
+    best_area = most_salient_view(sal, alpha, views, per_area=True)
+    assert float(best_area[2]) > 0.8
+    values = viewpoint_saliency(sal, alpha, views)
+    assert int(jnp.argmax(values)) == int(np.argmax(np.asarray(views)[:, 2]))
+
+
+def test_projected_area_and_per_area():
+    alpha = jnp.zeros((8, 8, 8)).at[2:4, 2:6, 1:7].set(0.5)
+    views = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, 1.0], [1.0, 1.0, 0.0]])
+    area = projected_area(alpha, views)
+    np.testing.assert_allclose(np.asarray(area[:3]), [24.0, 12.0, 8.0])
+    assert 12.0 < float(area[3]) < 40.0
+    sal = jnp.ones((8, 8, 8))
+    s = viewpoint_saliency(sal, alpha, views)
+    per = viewpoint_saliency(sal, alpha, views, per_area=True)
+    np.testing.assert_allclose(np.asarray(per), np.asarray(s / area), rtol=1e-14)
+    empty = viewpoint_saliency(sal, jnp.zeros((8, 8, 8)), views, per_area=True)
+    assert bool(jnp.all(empty == 0))
+
+
+def test_viewpoint_saliency_grad_vmap_dtype():
+    rng = np.random.default_rng(4)
+    sal, alpha = jnp.asarray(rng.random((5, 5, 5))), jnp.asarray(0.5 * rng.random((5, 5, 5)))
+    f = jax.jit(lambda a: jnp.sum(viewpoint_saliency(sal, a, VIEWS) ** 2))
+    check_grad_fd(f, alpha)
+    g = jax.grad(f)(jnp.ones((5, 5, 5)))  # fully opaque: finite
+    assert bool(jnp.all(jnp.isfinite(g)))
+    batched = jax.vmap(lambda a: viewpoint_saliency(sal, a, VIEWS))(jnp.stack([alpha, 1 - alpha]))
+    np.testing.assert_allclose(np.asarray(batched[1]),
+                               np.asarray(viewpoint_saliency(sal, 1 - alpha, VIEWS)), rtol=1e-14)
+    out32 = viewpoint_saliency(sal.astype(jnp.float32), alpha.astype(jnp.float32), VIEWS)
+    assert out32.dtype == jnp.float32
+
+
+# ------------------------------------------------------------------ opacity modulation
+
+
+def test_modulate_opacity():
+    a = jnp.full((1, 1, 5), 0.6)
+    s = jnp.array([[[0.1, 0.2, 0.5, 0.95, 1.0]]])
+    np.testing.assert_allclose(np.asarray(modulate_opacity(a, s))[0, 0],
+                               [0.0, 0.12, 0.3, 0.57, 0.6], rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(modulate_opacity(a, s, multiply=False))[0, 0],
+                               [0.0, 0.6, 0.6, 0.6, 0.6])
+    np.testing.assert_allclose(np.asarray(modulate_opacity(a, s, boost_top=0.1))[0, 0],
+                               [0.0, 0.12, 0.3, 1.0, 1.0], rtol=1e-14)
+    g = jax.grad(lambda x: jnp.sum(modulate_opacity(x, s, boost_top=0.1)))(a)
+    np.testing.assert_allclose(np.asarray(g)[0, 0], [0.0, 0.2, 0.5, 0.0, 0.0], rtol=1e-14)
+    assert modulate_opacity(a.astype(jnp.float32), s).dtype == jnp.float32
+
+
+# ------------------------------------------------------------------ errors
+
+
+def test_errors():
+    v = jnp.zeros((4, 4, 4))
+    with pytest.raises(ValueError, match="obscurance"):
+        saliency(jnp.zeros((4, 4)))
+    with pytest.raises(ValueError, match="size"):
+        saliency(v, size=4)
+    with pytest.raises(Exception, match="NaN"):
+        saliency(v.at[0, 0, 0].set(jnp.inf))
+    with pytest.raises(ValueError, match="same"):
+        viewpoint_saliency(v, jnp.zeros((4, 4, 5)), VIEWS)
+    with pytest.raises(ValueError, match="unknown visibility"):
+        viewpoint_saliency(v, v, VIEWS, visibility="seen")
+    with pytest.raises(ValueError, match="viewpoints"):
+        viewpoint_saliency(v, v, np.zeros((0, 3)))
+    with pytest.raises(Exception, match=r"\[0, 1\]"):
+        viewpoint_saliency(v, v + 2.0, VIEWS)
+    with pytest.raises(ValueError, match="boost_top"):
+        modulate_opacity(v, v, boost_top=1.5)

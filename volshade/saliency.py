@@ -1,0 +1,376 @@
+r"""Obscurance saliency, viewpoint saliency and saliency-driven opacity (Ruiz et al. 2008).
+
+Voxel saliency (section 4, eq. 4) is the magnitude of the obscurance gradient,
+estimated by 4D linear regression (Neumann et al. 2000) over a $5^3$ (or $3^3$)
+neighbourhood with distance weights $w(k) = |\mathbf{x}(k)|$, scaled to $[0, 1]$
+by its maximum over the volume:
+
+$$ S(p) = \frac{\sqrt{A^2 + B^2 + C^2}}{\max_q \sqrt{A_q^2 + B_q^2 + C_q^2}}. $$
+
+Viewpoint saliency (section 5.2, eq. 6) sums the voxel saliency weighted by the
+visibility of each voxel from the viewpoint, $S(v) = \sum_p S(p) V(p)$. Here
+$V(p)$ is the transmittance from $p$ to the outside of the volume towards an
+orthographic viewer in direction $v$, accumulated along the same digital lines
+as the obscurance sweep (:mod:`volshade.obscurance`): with $q_1, q_2, \dots$ the
+voxels after $p$ on its line in direction $v$,
+
+$$ V(p) = \prod_{t \ge 1} \big(1 - \alpha'(q_t)\big), \qquad
+   \alpha' = 1 - (1 - \alpha)^{|s|}, $$
+
+where the opacities (given per voxel length) are corrected to the line's step
+length $|s| = |v| / |v_a| \in [1, \sqrt 3]$ voxels. The digital line stands in
+for a ray through voxel centres: nearest-voxel sampling, no interpolation. This
+is the approximation; it is exact for axis-aligned viewpoints.
+
+Viewpoints are unit vectors pointing *from the volume towards the viewer*,
+axis order ``(d, h, w)``, e.g. ``volshade.directions.icosphere(1)`` (42).
+"""
+
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _checks
+from ._numerics import correct_opacity, safe_div, safe_sqrt
+from ._types import Array, ArrayLike, Float
+from .gradient import regression_gradient
+from .obscurance import (
+    _direction_array,
+    _line_groups,
+    _shear,
+    _shift_up,
+    _static_dirs,
+    _to_frame,
+)
+
+__all__ = [
+    "saliency",
+    "viewpoint_saliency",
+    "projected_area",
+    "most_salient_view",
+    "least_salient_view",
+    "modulate_opacity",
+]
+
+
+def saliency(
+    obscurance: Float[Array, "D H W"] | Float[Array, "D H W C"],
+    *,
+    size: int = 5,
+    spacing: float | tuple[float, float, float] = 1.0,
+    weighting: str = "distance",
+) -> Float[Array, "D H W"]:
+    r"""Voxel saliency: the scaled magnitude of the obscurance gradient (eq. 4, section 4).
+
+    $S(p) = |\nabla O(p)| / \max_q |\nabla O(q)|$, with $\nabla O$ from
+    :func:`volshade.gradient.regression_gradient` (exact for linear fields). For
+    a multi-channel (e.g. RGB colour-bleeding) obscurance the magnitude is the
+    Frobenius norm over channels and components. The minimum of the field is
+    subtracted first (the gradient is unchanged) so that a constant field gives
+    exactly 0 everywhere; where the maximum magnitude is 0 the result is 0.
+
+    Args:
+        obscurance: ``(D, H, W)`` or ``(D, H, W, C)`` obscurance field.
+        size: regression neighbourhood edge, 5 (the paper's) or 3 voxels.
+        spacing: voxel size ``(sd, sh, sw)`` in mm, or one number.
+        weighting: regression weights, ``"distance"`` (the paper's $w(k) = |x(k)|$),
+            ``"inverse_distance"`` or ``"uniform"``.
+
+    Returns:
+        ``(D, H, W)`` saliency in $[0, 1]$, in the input dtype.
+
+    Raises:
+        ValueError: wrong rank, empty, bad ``size``/``weighting``/``spacing``; NaN or
+            inf (at run time).
+
+    References:
+        Ruiz et al. 2008, eq. (4); Neumann, Csébfalvi, König, Gröller: Gradient
+        estimation in volume data using 4D linear regression. CGF 19(3), 2000.
+
+    Example:
+        >>> obs = jnp.linspace(0.0, 1.0, 8)[:, None, None] * jnp.ones((8, 8, 8))
+        >>> float(saliency(obs)[4, 4, 4])
+        1.0
+    """
+    where = "volshade.saliency.saliency"
+    arr = _checks.as_float_array(obscurance, "obscurance", where)
+    if arr.ndim == 4:
+        _checks.check_ndim(arr[..., 0], 3, "obscurance", where, "(D, H, W) or (D, H, W, C)")
+        channels = [arr[..., c] for c in range(arr.shape[-1])]
+    elif arr.ndim == 3:
+        channels = [arr]
+    else:
+        raise ValueError(f"{where}: `obscurance` must have shape (D, H, W) or (D, H, W, C), "
+                         f"got {arr.shape}; for a batch, use `jax.vmap`.")
+    arr = _checks.finite(arr, "obscurance", where)
+    sq = jnp.zeros(arr.shape[:3], arr.dtype)
+    for ch in channels:
+        shifted = ch - jnp.min(ch)
+        grad = regression_gradient(shifted, spacing=spacing, size=size, weighting=weighting)
+        sq = sq + jnp.sum(grad * grad, axis=-1)
+    magnitude = safe_sqrt(sq)
+    return safe_div(magnitude, jnp.max(magnitude))
+
+
+_VISIBILITY = {
+    "transmittance": lambda trans, alpha: trans,
+    "contribution": lambda trans, alpha: trans * alpha,
+}
+
+
+def _check_pair(saliency, opacity, where):
+    saliency = _checks.volume(saliency, "saliency", where)
+    opacity = _checks.volume(opacity, "opacity", where, unit_range=True).astype(saliency.dtype)
+    if saliency.shape != opacity.shape:
+        raise ValueError(f"{where}: `saliency` and `opacity` must have the same (D, H, W) "
+                         f"shape, got {saliency.shape} and {opacity.shape}.")
+    return saliency, opacity
+
+
+def _per_view(
+    opacity: Array, dirs: np.ndarray,
+    reduce: Callable[[Array, Array | None, Array], Array],
+    extra: Array | None = None,
+) -> Array:
+    """Apply ``reduce(columns_alpha, columns_extra, cosine) -> scalar`` to the sheared
+    columns of every viewpoint; columns run from the volume towards the viewer."""
+    dtype = opacity.dtype
+    out = jnp.zeros((dirs.shape[0],), dtype)
+    for g in _line_groups(dirs, opacity.shape):
+        frame_alpha = _to_frame(opacity, g.axis, g.sign)
+        frame_extra = _to_frame(extra, g.axis, g.sign) if extra is not None else None
+
+        def one(tables, frame_alpha=frame_alpha, frame_extra=frame_extra, g=g):
+            off_b, off_c, step, cosine = tables
+            alpha = correct_opacity(
+                _shear(frame_alpha, off_b, off_c, g.range_b, g.range_c, 0.0), step)
+            cols_extra = (None if frame_extra is None else
+                          _shear(frame_extra, off_b, off_c, g.range_b, g.range_c, 0.0))
+            return reduce(alpha, cols_extra, cosine)
+
+        values = jax.lax.map(one, (jnp.asarray(g.off_b), jnp.asarray(g.off_c),
+                                   jnp.asarray(g.step, dtype), jnp.asarray(g.cosine, dtype)))
+        out = out.at[g.index].set(values)
+    return out
+
+
+def _transmittance(alpha: Array) -> Array:
+    """Exclusive product of ``1 - alpha`` over the positions after each one (axis 0)."""
+    inclusive = jax.lax.cumprod(1 - alpha, axis=0, reverse=True)
+    return _shift_up(inclusive, 1, jnp.ones((), alpha.dtype))
+
+
+@functools.partial(jax.jit, static_argnames=("dirs", "visibility"))
+def _viewpoint_sums(saliency: Array, opacity: Array, *, dirs: tuple, visibility: str) -> Array:
+    vis_fn = _VISIBILITY[visibility]
+
+    def reduce(alpha, cols_saliency, cosine):
+        return jnp.sum(cols_saliency * vis_fn(_transmittance(alpha), alpha))
+
+    return _per_view(opacity, np.asarray(dirs), reduce, saliency)
+
+
+@functools.partial(jax.jit, static_argnames=("dirs",))
+def _projected_area(mask: Array, *, dirs: tuple) -> Array:
+    def reduce(alpha, _, cosine):
+        return cosine * jnp.sum(jnp.any(alpha > 0, axis=0)).astype(alpha.dtype)
+
+    return _per_view(mask, np.asarray(dirs), reduce)
+
+
+def viewpoint_saliency(
+    saliency: Float[Array, "D H W"],
+    opacity: Float[Array, "D H W"],
+    viewpoints: Float[ArrayLike, "V 3"],
+    *,
+    visibility: str = "transmittance",
+    per_area: bool = False,
+) -> Float[Array, " V"]:
+    r"""Viewpoint saliency $S(v) = \sum_p S(p) V(p)$ (eq. 6, section 5.2) for each viewpoint.
+
+    $V(p)$ is the transmittance from voxel $p$ to the viewer (module docstring):
+    ``visibility="transmittance"`` uses it as is (the paper's visibility),
+    ``"contribution"`` uses $\alpha'(p) V(p)$, the weight of $p$ in a
+    front-to-back composite (empty voxels then count for nothing). With
+    ``per_area=True`` the sum is divided by :func:`projected_area` (the most
+    salient view per unit of projected area, Figure 6 f-g); a viewpoint that sees
+    an empty volume gets 0.
+
+    Args:
+        saliency: ``(D, H, W)`` voxel saliency (:func:`saliency`).
+        opacity: ``(D, H, W)`` opacities in [0, 1] per voxel length.
+        viewpoints: ``(V, 3)`` concrete directions from the volume towards the viewer
+            (``d, h, w``), e.g. ``volshade.directions.icosphere(1)``.
+        visibility: ``"transmittance"`` or ``"contribution"``.
+        per_area: divide by the projected area.
+
+    Returns:
+        ``(V,)`` viewpoint saliencies in the dtype of ``saliency``.
+
+    Raises:
+        ValueError: shapes differ, bad ``viewpoints``, unknown ``visibility``;
+            opacity outside [0, 1] or NaN (at run time).
+
+    References:
+        Ruiz et al. 2008, eq. (6); Lee, Varshney, Jacobs: Mesh saliency. SIGGRAPH 2005.
+
+    Example:
+        >>> from volshade.directions import icosphere
+        >>> sal = jnp.zeros((8, 8, 8)).at[1, 4, 4].set(1.0)
+        >>> alpha = jnp.zeros((8, 8, 8)).at[4:].set(1.0)   # a wall hides d >= 4 from +d
+        >>> s = viewpoint_saliency(sal, alpha, jnp.array([[-1.0, 0, 0], [1.0, 0, 0]]))
+        >>> [float(x) for x in s]
+        [1.0, 0.0]
+    """
+    where = "volshade.saliency.viewpoint_saliency"
+    _checks.option(visibility, _VISIBILITY, "visibility", where)
+    saliency, opacity = _check_pair(saliency, opacity, where)
+    dirs = _static_dirs(_direction_array(viewpoints, "viewpoints", where))
+    total = _viewpoint_sums(saliency, opacity, dirs=dirs, visibility=visibility)
+    if per_area:
+        total = safe_div(total, projected_area(opacity, viewpoints))
+    return total
+
+
+def projected_area(
+    opacity: Float[Array, "D H W"],
+    viewpoints: Float[ArrayLike, "V 3"],
+    *,
+    level: Float[ArrayLike, ""] = 0.0,
+) -> Float[Array, " V"]:
+    r"""Projected area (voxel$^2$) of the non-empty part of the volume seen from each viewpoint.
+
+    The pixels of the orthographic projection are the digital lines of the
+    viewpoint's sweep; a pixel is visible when some voxel on its line has
+    opacity greater than ``level``. Each line covers $|v_a|$ voxel$^2$ of the
+    image plane (a unit voxel face perpendicular to the major axis $a$,
+    projected along $v$), so the area is $|v_a| \cdot$ (number of visible lines).
+
+    Args:
+        opacity: ``(D, H, W)`` opacities in [0, 1].
+        viewpoints: ``(V, 3)`` concrete directions towards the viewer.
+        level: opacity above which a voxel counts as non-empty.
+
+    Returns:
+        ``(V,)`` areas in voxel$^2$, in the dtype of ``opacity``.
+
+    Example:
+        >>> alpha = jnp.zeros((8, 8, 8)).at[2:4, 2:6, 2:6].set(1.0)
+        >>> [float(a) for a in projected_area(alpha, jnp.array([[1.0, 0, 0], [0, 1.0, 0]]))]
+        [16.0, 8.0]
+    """
+    where = "volshade.saliency.projected_area"
+    opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
+    level = jnp.asarray(level, opacity.dtype)
+
+    # The mask of non-empty voxels is swept (opacity correction keeps 0 and 1 fixed).
+    mask = jnp.where(opacity > level, jnp.ones_like(opacity), jnp.zeros_like(opacity))
+    dirs = _static_dirs(_direction_array(viewpoints, "viewpoints", where))
+    return _projected_area(mask, dirs=dirs)
+
+
+def _select(saliency, opacity, viewpoints, per_area, visibility, pick, where):
+    values = viewpoint_saliency(saliency, opacity, viewpoints, visibility=visibility,
+                                per_area=per_area)
+    dirs = jnp.asarray(_direction_array(viewpoints, "viewpoints", where), values.dtype)
+    return dirs[pick(values)]
+
+
+def most_salient_view(
+    saliency: Float[Array, "D H W"],
+    opacity: Float[Array, "D H W"],
+    viewpoints: Float[ArrayLike, "V 3"],
+    *,
+    per_area: bool = False,
+    visibility: str = "transmittance",
+) -> Float[Array, "3"]:
+    """The viewpoint (unit ``(3,)`` direction towards the viewer) of largest
+    :func:`viewpoint_saliency` (Figure 6 b; ``per_area=True``: Figure 6 f).
+
+    For the index use ``jnp.argmax(viewpoint_saliency(...))``. Arguments as in
+    :func:`viewpoint_saliency`; ties go to the first viewpoint.
+
+    Example:
+        >>> sal = jnp.zeros((8, 8, 8)).at[1, 4, 4].set(1.0)
+        >>> alpha = jnp.zeros((8, 8, 8)).at[4:].set(1.0)
+        >>> most_salient_view(sal, alpha, jnp.array([[-1.0, 0, 0], [1.0, 0, 0]])).tolist()
+        [-1.0, 0.0, 0.0]
+    """
+    return _select(saliency, opacity, viewpoints, per_area, visibility, jnp.argmax,
+                   "volshade.saliency.most_salient_view")
+
+
+def least_salient_view(
+    saliency: Float[Array, "D H W"],
+    opacity: Float[Array, "D H W"],
+    viewpoints: Float[ArrayLike, "V 3"],
+    *,
+    per_area: bool = False,
+    visibility: str = "transmittance",
+) -> Float[Array, "3"]:
+    """The viewpoint of smallest :func:`viewpoint_saliency` (Figure 6 d); see
+    :func:`most_salient_view`."""
+    return _select(saliency, opacity, viewpoints, per_area, visibility, jnp.argmin,
+                   "volshade.saliency.least_salient_view")
+
+
+def modulate_opacity(
+    opacity: Float[Array, "D H W"],
+    saliency: Float[Array, "D H W"],
+    *,
+    threshold: Float[ArrayLike, ""] = 0.2,
+    multiply: bool = True,
+    boost_top: float | None = None,
+) -> Float[Array, "D H W"]:
+    r"""Saliency-driven opacity modulation (section 5.2, Figures 6 c/e/g and 7).
+
+    $$ \alpha' = \begin{cases} 0 & S < \text{threshold} \\
+        \min\big(1,\ b\, \alpha\, S^{m}\big) & \text{otherwise} \end{cases}
+       \qquad b = \begin{cases} 2 & S \ge 1 - \text{boost\_top} \\ 1 & \text{else} \end{cases} $$
+
+    with $m = 1$ when ``multiply`` (the opacity times the saliency, Figure 6) and
+    $m = 0$ otherwise (opacity preserved above the threshold, Figure 7 b).
+    ``boost_top`` doubles the opacity of the most salient voxels, those whose
+    scaled saliency is in the top ``boost_top`` fraction of the range [0, 1]
+    (Figure 7 c); the doubled opacity is clipped to 1 (documented clip).
+
+    Args:
+        opacity: ``(D, H, W)`` opacities in [0, 1].
+        saliency: ``(D, H, W)`` saliency in [0, 1] (:func:`saliency`).
+        threshold: saliency below which voxels become transparent (0.2 in the paper);
+            dynamic.
+        multiply: multiply the opacity by the saliency.
+        boost_top: ``None`` (no boost) or a fraction in (0, 1].
+
+    Returns:
+        ``(D, H, W)`` opacities in [0, 1], in the dtype of ``opacity``.
+
+    Raises:
+        ValueError: shapes differ, ``boost_top`` outside (0, 1].
+
+    Example:
+        >>> a = jnp.full((1, 1, 3), 0.5)
+        >>> s = jnp.array([[[0.1, 0.5, 1.0]]])
+        >>> modulate_opacity(a, s, boost_top=0.1).tolist()
+        [[[0.0, 0.25, 1.0]]]
+    """
+    where = "volshade.saliency.modulate_opacity"
+    opacity = _checks.volume(opacity, "opacity", where)
+    saliency = _checks.volume(saliency, "saliency", where).astype(opacity.dtype)
+    if saliency.shape != opacity.shape:
+        raise ValueError(f"{where}: `saliency` and `opacity` must have the same shape, got "
+                         f"{saliency.shape} and {opacity.shape}.")
+    if boost_top is not None and not (isinstance(boost_top, int | float)
+                                      and 0 < boost_top <= 1):
+        raise ValueError(f"{where}: `boost_top` must be None or a fraction in (0, 1], "
+                         f"got {boost_top!r}.")
+    threshold = jnp.asarray(threshold, opacity.dtype)
+    alpha = opacity * saliency if multiply else opacity
+    if boost_top is not None:
+        top = saliency >= 1 - jnp.asarray(boost_top, opacity.dtype)
+        alpha = jnp.minimum(jnp.where(top, 2 * alpha, alpha), 1)
+    return jnp.where(saliency < threshold, jnp.zeros_like(alpha), alpha)
+
