@@ -68,8 +68,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import safe_div, safe_normalize, safe_sqrt
+from ._numerics import safe_div, safe_normalize, safe_pow, safe_sqrt
 from ._types import Array, ArrayLike, Float
+from .directions import icosphere
 
 __all__ = [
     "RHO_FUNCTIONS",
@@ -77,6 +78,7 @@ __all__ = [
     "occluder_distances",
     "threshold",
     "obscurance_shading",
+    "ObscuranceParams",
 ]
 
 
@@ -544,13 +546,6 @@ def threshold(
     return jnp.where(obscurance >= high, jnp.ones_like(ramp), out)
 
 
-def _safe_pow(x: Array, n: Array) -> Array:
-    """``x ** n`` for ``x > 0`` and 0 (zero gradient) for ``x <= 0``."""
-    positive = x > 0
-    safe_x = jnp.where(positive, x, jnp.ones_like(x))
-    return jnp.where(positive, jnp.exp(n * jnp.log(safe_x)), jnp.zeros_like(x))
-
-
 def obscurance_shading(
     normal: Float[Array, "*batch 3"],
     light: Float[ArrayLike, "*batch 3"],
@@ -615,7 +610,7 @@ def obscurance_shading(
     n_dot_l = jnp.maximum(jnp.sum(n * light_dir, axis=-1), 0)
     n_dot_h = jnp.maximum(jnp.sum(n * half, axis=-1), 0)
     k_d, k_s, shininess = (jnp.asarray(v, dtype) for v in (k_d, k_s, shininess))
-    local = k_d * n_dot_l + k_s * _safe_pow(n_dot_h, shininess)
+    local = k_d * n_dot_l + k_s * safe_pow(n_dot_h, shininess)
     if obscurance.shape == batch:
         return local * obscurance
     if obscurance.shape == (*batch, 3):
@@ -623,3 +618,49 @@ def obscurance_shading(
     raise ValueError(f"{where}: `obscurance` must have shape {batch} (grey) or "
                      f"{(*batch, 3)} (RGB) to match `normal`, got {obscurance.shape}.")
 
+
+
+_DENSITIES = ("opacity", "intensity")
+
+
+class ObscuranceParams(eqx.Module):
+    """Obscurance settings for a :class:`volshade.Scene` (``ambient="obscurance"``).
+
+    ``d_max``, ``low`` and ``high`` are differentiable leaves; the rest is static.
+
+    Attributes:
+        d_max: maximum occluder distance in voxels.
+        low, high: display thresholds (:func:`threshold`; 0 and 1 leave values as they are).
+        rho: name of a rho function (:data:`RHO_FUNCTIONS`).
+        level: icosphere level of the directions: 0, 1, 2 for 12, 42, 162.
+        color_bleeding: tint by the occluders' transfer-function colours (eq. 3).
+        density: what occludes: ``"opacity"`` (transfer-function opacity) or
+            ``"intensity"`` (raw values, transfer-function independent).
+    """
+
+    d_max: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=32.0)
+    low: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
+    high: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
+    rho: str = eqx.field(static=True, default="sqrt")
+    level: int = eqx.field(static=True, default=1)
+    color_bleeding: bool = eqx.field(static=True, default=False)
+    density: str = eqx.field(static=True, default="opacity")
+
+    def __check_init__(self):
+        where = "volshade.ObscuranceParams"
+        _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
+        if self.density not in _DENSITIES:
+            raise ValueError(f"{where}: unknown density {self.density!r}; valid values are "
+                             f"{', '.join(map(repr, _DENSITIES))}.")
+        if self.level not in (0, 1, 2, 3):
+            raise ValueError(f"{where}: `level` must be 0, 1, 2 or 3 (12, 42, 162, 642 "
+                             f"directions), got {self.level!r}.")
+
+    def __call__(self, volume: Float[Array, "D H W"], transfer) -> Array:
+        """Thresholded obscurance of ``volume`` classified by ``transfer``: ``(D, H, W)``,
+        or ``(D, H, W, 3)`` with colour bleeding."""
+        density = transfer.opacity(volume) if self.density == "opacity" else volume
+        colors = transfer.color(volume) if self.color_bleeding else None
+        obs = obscurance(density, directions=icosphere(self.level), d_max=self.d_max,
+                         rho=self.rho, colors=colors)
+        return threshold(obs, self.low, self.high)

@@ -23,13 +23,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
+from ._numerics import correct_opacity
+from ._types import Array, Float
 from .camera import Camera, box_half_extent, intersect_box
 from .composition import COMPOSITORS, Sample
 from .gradient import regression_gradient
 from .sampling import trilinear
 from .shading import SHADERS, Phong
 from .transfer import TransferFunction
-from ._types import Array, Float
 
 
 def n_samples(shape: tuple[int, int, int], spacing, step: float) -> int:
@@ -50,6 +51,7 @@ def march(
     ambient: Array | None = None,
     composition: str = "standard",
     background=(0.0, 0.0, 0.0),
+    opacity_scale: Float[Array, "D H W"] | None = None,
 ) -> Float[Array, "H W 4"]:
     """Render a volume by front-to-back ray marching.
 
@@ -65,6 +67,9 @@ def march(
             [0, 1] (ambient occlusion, obscurance), sampled trilinearly.
         composition: compositor name (see :data:`volshade.composition.COMPOSITORS`).
         background: RGB colour behind the volume.
+        opacity_scale: optional ``(D, H, W)`` factor $f \\ge 0$, sampled trilinearly;
+            each sample's reference opacity becomes $\\min(1, f \alpha_0)$ before
+            the step correction (saliency-driven modulation).
 
     Returns:
         ``(H, W, 4)``: RGB with the background blended in, and the accumulated
@@ -88,6 +93,11 @@ def march(
             raise ValueError(f"{where}: `ambient` must have shape {volume.shape} or "
                              f"{(*volume.shape, 3)}, got {ambient.shape}.")
         ambient = _checks.finite(ambient, "ambient", where)
+    if opacity_scale is not None:
+        opacity_scale = _checks.volume(opacity_scale, "opacity_scale", where).astype(dtype)
+        if opacity_scale.shape != volume.shape:
+            raise ValueError(f"{where}: `opacity_scale` must have shape {volume.shape}, "
+                             f"got {opacity_scale.shape}.")
     phong = Phong() if phong is None else phong
 
     half_extent, scale = box_half_extent(volume.shape, spacing)
@@ -111,7 +121,10 @@ def march(
         index = (origins + t_mid[..., None] * directions + half_extent[None, None]) \
             * to_index[None, None] - 0.5
         value = trilinear(volume, index, mode="nearest")
-        color, alpha = transfer(value, step=seg * scale)
+        color, alpha0 = transfer(value)
+        if opacity_scale is not None:
+            alpha0 = jnp.minimum(alpha0 * trilinear(opacity_scale, index, mode="nearest"), 1)
+        alpha = correct_opacity(alpha0, seg * scale / transfer.step0)
         amb = jnp.ones((*batch, 1), dtype) if ambient is None else \
             trilinear(ambient, index, mode="nearest").reshape(*batch, -1)
         grad = None if gradient is None else trilinear(gradient, index, mode="nearest")

@@ -29,6 +29,7 @@ axis order ``(d, h, w)``, e.g. ``volshade.directions.icosphere(1)`` (42).
 import functools
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -36,6 +37,7 @@ import numpy as np
 from . import _checks
 from ._numerics import correct_opacity, safe_div, safe_sqrt
 from ._types import Array, ArrayLike, Float
+from .directions import icosphere
 from .gradient import regression_gradient
 from .obscurance import (
     _direction_array,
@@ -44,6 +46,7 @@ from .obscurance import (
     _shift_up,
     _static_dirs,
     _to_frame,
+    obscurance,
 )
 
 __all__ = [
@@ -53,6 +56,8 @@ __all__ = [
     "most_salient_view",
     "least_salient_view",
     "modulate_opacity",
+    "opacity_factor",
+    "SaliencyModulation",
 ]
 
 
@@ -367,10 +372,53 @@ def modulate_opacity(
                                       and 0 < boost_top <= 1):
         raise ValueError(f"{where}: `boost_top` must be None or a fraction in (0, 1], "
                          f"got {boost_top!r}.")
-    threshold = jnp.asarray(threshold, opacity.dtype)
-    alpha = opacity * saliency if multiply else opacity
-    if boost_top is not None:
-        top = saliency >= 1 - jnp.asarray(boost_top, opacity.dtype)
-        alpha = jnp.minimum(jnp.where(top, 2 * alpha, alpha), 1)
-    return jnp.where(saliency < threshold, jnp.zeros_like(alpha), alpha)
+    factor = opacity_factor(saliency, threshold=threshold, multiply=multiply,
+                            boost_top=boost_top)
+    return jnp.minimum(opacity * factor, 1)
 
+
+def opacity_factor(
+    saliency: Float[Array, "D H W"],
+    *,
+    threshold: Float[ArrayLike, ""] = 0.2,
+    multiply: bool = True,
+    boost_top: float | None = None,
+) -> Float[Array, "D H W"]:
+    r"""The factor $f$ of :func:`modulate_opacity`, $\alpha' = \min(1, f\,\alpha)$.
+
+    $f = 0$ where $S <$ ``threshold``, else $b\, S^m$ ($b$, $m$ as in
+    :func:`modulate_opacity`). The renderer multiplies interpolated opacities by it.
+    """
+    dtype = saliency.dtype
+    threshold = jnp.asarray(threshold, dtype)
+    factor = saliency if multiply else jnp.ones_like(saliency)
+    if boost_top is not None:
+        top = saliency >= 1 - jnp.asarray(boost_top, dtype)
+        factor = jnp.where(top, 2 * factor, factor)
+    return jnp.where(saliency < threshold, jnp.zeros_like(factor), factor)
+
+
+
+class SaliencyModulation(eqx.Module):
+    """Saliency-driven opacity modulation for a :class:`volshade.Scene` (section 5.2).
+
+    The scene's obscurance (grey, of the transfer-function opacity) gives the
+    saliency (:func:`saliency`), and the renderer multiplies every sample's
+    opacity by :func:`opacity_factor` of it. ``threshold`` and ``d_max`` are
+    differentiable leaves; the rest is static.
+    """
+
+    threshold: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.2)
+    d_max: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=32.0)
+    rho: str = eqx.field(static=True, default="sqrt")
+    level: int = eqx.field(static=True, default=1)
+    size: int = eqx.field(static=True, default=5)
+    multiply: bool = eqx.field(static=True, default=True)
+    boost_top: float | None = eqx.field(static=True, default=None)
+
+    def __call__(self, volume: Float[Array, "D H W"], transfer) -> Float[Array, "D H W"]:
+        """The opacity factor volume for ``volume`` classified by ``transfer``."""
+        obs = obscurance(transfer.opacity(volume), directions=icosphere(self.level),
+                         d_max=self.d_max, rho=self.rho)
+        return opacity_factor(saliency(obs, size=self.size), threshold=self.threshold,
+                              multiply=self.multiply, boost_top=self.boost_top)

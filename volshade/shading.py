@@ -25,6 +25,7 @@ import jax.numpy as jnp
 
 from ._numerics import safe_normalize, safe_pow
 from ._types import Array, Float
+from .obscurance import obscurance_shading
 
 
 class Phong(eqx.Module):
@@ -78,6 +79,14 @@ def unlit(color, gradient, light, view, ambient, params):
     return color * ambient
 
 
+def obscurance_lit(color, gradient, light, view, ambient, params):
+    r"""Eq. 5 of Ruiz et al. 2008: $c\,(k_d N\cdot L + k_s (N\cdot H)^n)\, O(x)$, the whole
+    local lighting scaled by the (grey or RGB) obscurance passed as ``ambient``."""
+    obs = jnp.broadcast_to(ambient, color.shape)
+    return color * obscurance_shading(-gradient, light, view, obs, k_d=params.diffuse,
+                                      k_s=params.specular, shininess=params.shininess)
+
+
 class Shader(NamedTuple):
     fn: Callable
     needs_gradient: bool
@@ -86,4 +95,5 @@ class Shader(NamedTuple):
 SHADERS: dict[str, Shader] = {
     "none": Shader(unlit, needs_gradient=False),
     "phong": Shader(blinn_phong, needs_gradient=True),
+    "obscurance": Shader(obscurance_lit, needs_gradient=True),
 }
