@@ -6,6 +6,10 @@ import pytest
 
 import volshade.scene as scene_module
 from volshade.camera import Camera
+from volshade.importance import Focus, Importance
+from volshade.lao import LocalAmbientOcclusion, lao
+from volshade.obscurance import ObscuranceParams, obscurance
+from volshade.saliency import SaliencyModulation, opacity_factor, saliency
 from volshade.render import march
 from volshade.scene import Scene, render
 from volshade.shading import Phong
@@ -26,7 +30,8 @@ def test_render_equals_march_with_the_scene_options():
         render(s, cam),
         march(vol, preset("grey"), cam, shading="phong", ambient=ao, step=0.8,
               background=(0.1, 0.2, 0.3)), atol=1e-12)
-    assert s.plan() == {"ambient": "volume", "shading": "phong", "composition": "standard"}
+    assert s.plan() == {"ambient": "volume", "modulation": "none", "shading": "phong",
+                        "composition": "standard"}
 
 
 def test_effects_that_are_off_are_not_traced(monkeypatch):
@@ -80,6 +85,67 @@ def test_scene_errors():
         Scene(volume=_volume(), transfer=tf, spacing=(1.0, -1.0, 1.0))
     with pytest.raises(ValueError, match="step"):
         Scene(volume=_volume(), transfer=tf, step=-1.0)
+    with pytest.raises(ValueError, match="unknown modulation"):
+        Scene(volume=_volume(), transfer=tf, modulation="edges")
+    with pytest.raises(ValueError, match="focus"):
+        Scene(volume=_volume(), transfer=tf, focus=Focus())
     with pytest.raises(ValueError, match="background"):
         Scene(volume=_volume(), transfer=tf, background=(0.0, 0.0))
     assert isinstance(Scene(volume=_volume(), transfer=tf).phong, Phong)
+
+
+def test_lao_obscurance_saliency_and_importance_effects_match_their_kernels():
+    vol = _volume()
+    tf = preset("grey")
+    cam = Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(4, 4))
+    params = LocalAmbientOcclusion(3.0, offset=0.5, directions=6, samples=4)
+    s = Scene(volume=vol, transfer=tf, ambient="lao", lao=params, shading="phong")
+    ao = lao(tf.opacity(vol), directions=params.directions, radius=3.0, offset=0.5, samples=4)
+    np.testing.assert_allclose(render(s, cam), march(vol, tf, cam, shading="phong", ambient=ao),
+                               atol=1e-12)
+    obs_params = ObscuranceParams(d_max=4.0, level=0, color_bleeding=True)
+    s = Scene(volume=vol, transfer=tf, ambient="obscurance", obscurance=obs_params,
+              shading="obscurance")
+    from volshade.directions import icosphere
+
+    obs = obscurance(tf.opacity(vol), directions=icosphere(0), d_max=4.0, colors=tf.color(vol))
+    np.testing.assert_allclose(render(s, cam),
+                               march(vol, tf, cam, shading="obscurance", ambient=obs), atol=1e-12)
+    s = Scene(volume=vol, transfer=tf, modulation="saliency",
+              saliency=SaliencyModulation(d_max=4.0, level=0, size=3))
+    factor = opacity_factor(saliency(obscurance(tf.opacity(vol), directions=icosphere(0),
+                                                d_max=4.0), size=3), threshold=0.2)
+    np.testing.assert_allclose(render(s, cam), march(vol, tf, cam, opacity_scale=factor),
+                               atol=1e-12)
+    imp = Importance(intensity=3.0, silhouette=1.0)
+    focus = Focus(center=(0.5, 0.5), radius=0.3, kind="circular")
+    s = Scene(volume=vol, transfer=tf, composition="importance", importance=imp, focus=focus)
+    np.testing.assert_allclose(
+        render(s, cam), march(vol, tf, cam, composition="importance", importance=imp,
+                              focus=focus.weights((4, 4))), atol=1e-12)
+    assert not np.allclose(render(s, cam), march(vol, tf, cam), atol=1e-3)
+
+
+def test_importance_with_zero_weights_equals_standard_render():
+    cam = Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(5, 5))
+    vol = _volume()
+    std = render(Scene(volume=vol, transfer=preset("grey"), shading="phong"), cam)
+    imp = render(Scene(volume=vol, transfer=preset("grey"), shading="phong",
+                       composition="importance"), cam)
+    np.testing.assert_allclose(imp, std, atol=1e-6)
+
+
+def test_fitting_leaves_get_gradients_without_recompiling():
+    vol = _volume()
+    cam = Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(3, 3))
+    s = Scene(volume=vol, transfer=preset("grey"), ambient="lao", shading="phong",
+              lao=LocalAmbientOcclusion(2.5, offset=0.5, directions=6, samples=4),
+              composition="importance", importance=Importance(intensity=1.0))
+    loss = eqx.filter_jit(eqx.filter_grad(lambda sc: jnp.sum(render(sc, cam))))
+    g = loss(s)
+    assert np.isfinite(g.lao.radius) and float(g.lao.radius) != 0
+    assert np.isfinite(g.importance.intensity) and float(g.importance.intensity) != 0
+    s2 = eqx.tree_at(lambda t: (t.lao.radius, t.importance.intensity), s,
+                     (s.lao.radius + 0.5, 2 * s.importance.intensity))
+    loss(s2)
+    assert loss._cached._cache_size() == 1

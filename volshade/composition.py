@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _checks
+from ._numerics import tiny
 from ._types import Array, ArrayLike, Float
 
 
@@ -137,7 +138,7 @@ class ImportanceState(NamedTuple):
 
     @property
     def accumulated_importance(self) -> Array:
-        r"""The paper's accumulated importance $I_i = K_i + \ln\alpha_i$; $-\infty$ on empty rays."""
+        r"""The paper's accumulated importance $I_i = K_i + \ln\alpha_i$ ($-\infty$ if empty)."""
         alpha = self.opacity
         nonempty = alpha > 0
         k = self.peak_importance + self.importance_offset
@@ -145,14 +146,14 @@ class ImportanceState(NamedTuple):
 
 
 def importance_init(batch_shape: tuple[int, ...], dtype) -> ImportanceState:
-    """Empty rays: colour 0, transmittance 1, importance placeholders 0."""
+    """Empty rays: colour 0, transmittance 1, importance state 0 (unused until a sample lands)."""
     zeros = jnp.zeros(batch_shape, dtype)
     return ImportanceState(jnp.zeros((*batch_shape, 3), dtype), jnp.ones(batch_shape, dtype),
                            zeros, zeros)
 
 
 def _gap(state: ImportanceState, importance: Array, active: Array) -> Array:
-    """$K_i - I_s = \delta_i + (P_i - I_s)$ where ``active``, else 0 (finite everywhere)."""
+    r"""$K_i - I_s = \delta_i + (P_i - I_s)$ where ``active``, else 0 (finite everywhere)."""
     diff = state.peak_importance - jnp.where(active, importance, state.peak_importance)
     return jnp.where(active, state.importance_offset + diff, 0)
 
@@ -163,7 +164,8 @@ def modulation(state: ImportanceState, importance: ArrayLike) -> Array:
     With $vis(I_s, I_i) = 1 - e^{I_i - I_s}$ (eq. 3), the three cases of eq. 2
     collapse to $m_i = \min(1, e^{I_i - I_s} / \alpha_i)$, i.e. in log space
 
-    $$ m_i = \exp\big(\min(0,\; I_i - I_s - \ln\alpha_i)\big) = \exp\big(\min(0,\; K_i - I_s)\big), $$
+    $$ m_i = \exp\big(\min(0,\; I_i - I_s - \ln\alpha_i)\big)
+           = \exp\big(\min(0,\; K_i - I_s)\big), $$
 
     which never overflows. On an empty ray ($\alpha_i = 0$) $m_i = 1$.
 
@@ -200,7 +202,8 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     $m = e^{\min(0, K_i - I_s)}$ and eq. 8e reads, with $M = \max(K_i, I_s)$,
     $\beta = \alpha_i / \alpha_{i+1}$, $\rho = (1-\alpha_s)\beta$,
 
-    $$ K_{i+1} = M + \ln\max\big(\beta\, e^{K_i - M},\; (1-\rho)\, e^{I_s - M} + \rho\, e^{K_i - M}\big), $$
+    $$ K_{i+1} = M + \ln\max\big(\beta\, e^{K_i - M},\;
+                                 (1-\rho)\, e^{I_s - M} + \rho\, e^{K_i - M}\big), $$
 
     a log-sum-exp whose exponents are $\le 0$ and whose argument lies in
     $[e^{-|K_i - I_s|}, 1]$: no exp overflows for any importance gap and no
@@ -208,7 +211,8 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     the only zero denominators are on an empty ray meeting a sample with
     $\alpha_s = 0$, where the state is kept). Every guarded operation uses the
     double-``where`` idiom, so gradients are finite at $\alpha_s = 0$ and 1 and
-    for importance gaps of $10^4$. A sample with $\alpha_s = 0$ changes nothing
+    for importance gaps of $10^4$. A sample with $\alpha_s = 0$ (or below
+    $\sqrt{\text{tiny}}$ of the dtype, $10^{-19}$ in float32) changes nothing
     (its colour is not used, as 8a--8d give when $C_s = \alpha_s c_s$), and with
     equal importances everywhere $m = 1$ and the step is standard compositing.
     Only two transcendental functions (one ``exp``, one ``log``) are evaluated.
@@ -256,7 +260,9 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     alpha_p = a + alpha_s * one_minus_a                # eq. 8b
     t_new = t_acc * (1 - alpha_s)                      # eq. 8c
     alpha_new = 1 - t_new
-    visible = alpha_s > 0                              # alpha_s = 0 keeps the state exactly
+    # alpha_s = 0 keeps the state exactly. Opacities below sqrt(tiny) (1e-19 in float32),
+    # which cannot change T either, count as 0: then 1 / alpha'^2 in the gradient stays finite.
+    visible = alpha_s > jnp.sqrt(tiny(alpha_s))
     # eq. 8a/8d as a convex combination of the average colours.
     p_ok = visible & (alpha_p > 0)
     inv_p = 1 / jnp.where(p_ok, alpha_p, one)

@@ -23,11 +23,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import correct_opacity
+from ._numerics import correct_opacity, log1m, tiny
 from ._types import Array, Float
 from .camera import Camera, box_half_extent, intersect_box
 from .composition import COMPOSITORS, Sample
 from .gradient import regression_gradient
+from .importance import Importance, normalized_gradient_magnitude, sample_importance
 from .sampling import trilinear
 from .shading import SHADERS, Phong
 from .transfer import TransferFunction
@@ -52,6 +53,8 @@ def march(
     composition: str = "standard",
     background=(0.0, 0.0, 0.0),
     opacity_scale: Float[Array, "D H W"] | None = None,
+    importance: Importance | None = None,
+    focus: Float[Array, "H W"] | None = None,
 ) -> Float[Array, "H W 4"]:
     """Render a volume by front-to-back ray marching.
 
@@ -70,6 +73,15 @@ def march(
         opacity_scale: optional ``(D, H, W)`` factor $f \\ge 0$, sampled trilinearly;
             each sample's reference opacity becomes $\\min(1, f \alpha_0)$ before
             the step correction (saliency-driven modulation).
+        importance: weights of the importance measures for
+            ``composition="importance"`` (default :class:`~volshade.importance.Importance`,
+            all weights 0, which equals standard compositing). Each sample's
+            importance is measured on the fly (:func:`~volshade.importance.sample_importance`)
+            from its intensity, extinction, normalised gradient magnitude, normal,
+            the view (= light, a headlight) and the optical depth in front of it;
+            the silhouette darkening scales its colour.
+        focus: optional ``(H, W)`` per-ray global weights (focus plus context,
+            :func:`~volshade.importance.focus_weights`), for ``composition="importance"``.
 
     Returns:
         ``(H, W, 4)``: RGB with the background blended in, and the accumulated
@@ -99,6 +111,16 @@ def march(
             raise ValueError(f"{where}: `opacity_scale` must have shape {volume.shape}, "
                              f"got {opacity_scale.shape}.")
     phong = Phong() if phong is None else phong
+    measured = composition == "importance"
+    importance = Importance() if importance is None else importance
+    if focus is not None:
+        focus = _checks.finite(_checks.as_float_array(focus, "focus", where).astype(dtype),
+                               "focus", where)
+        if focus.shape != camera.image_shape:
+            raise ValueError(f"{where}: `focus` must have the camera's image shape "
+                             f"{camera.image_shape}, got {focus.shape}.")
+        if not measured:
+            raise ValueError(f"{where}: `focus` weights need composition='importance'.")
 
     half_extent, scale = box_half_extent(volume.shape, spacing)
     half_extent = half_extent.astype(dtype)
@@ -111,11 +133,17 @@ def march(
     t_near = jnp.where(hit, t_near, 0)  # a missed ray may carry t = +-max: keep positions finite
     dt = jnp.asarray(step / scale, dtype)
     to_index = jnp.asarray(scale / np.asarray(spacing), dtype)
-    gradient = regression_gradient(volume, spacing=spacing, size=3) if shader.needs_gradient \
-        else None
+    gradient = regression_gradient(volume, spacing=spacing, size=3) \
+        if shader.needs_gradient or measured else None
+    magnitude = normalized_gradient_magnitude(gradient) if measured else None
     eye_dir = -directions
+    # Optical depth of an opaque sample is infinite; capping it at -log(tiny) keeps the
+    # importance measures finite (a weight of 0 times inf would be NaN). Transmittance
+    # below `tiny` is 0 in this dtype anyway.
+    max_depth = -jnp.log(tiny(volume))
 
-    def body(state, k):
+    def body(carry, k):
+        state, depth = carry
         seg = jnp.clip(length - k * dt, 0, dt)
         t_mid = t_near + k * dt + 0.5 * seg
         index = (origins + t_mid[..., None] * directions + half_extent[None, None]) \
@@ -129,12 +157,23 @@ def march(
             trilinear(ambient, index, mode="nearest").reshape(*batch, -1)
         grad = None if gradient is None else trilinear(gradient, index, mode="nearest")
         shaded = shader.fn(color, grad, eye_dir, eye_dir, amb, phong)
-        return comp.step(state, Sample(alpha[..., None] * shaded, alpha)), None
+        sample_imp = None
+        if measured:
+            tau = jnp.minimum(-log1m(alpha0), max_depth) / transfer.step0
+            sample_imp, darkening = sample_importance(
+                importance, intensity=value, extinction=tau,
+                gradient_magnitude=trilinear(magnitude, index, mode="nearest"), normal=-grad,
+                view=eye_dir, light=eye_dir, optical_depth=depth, global_weight=focus)
+            shaded = shaded * darkening[..., None]
+            depth = depth + tau * seg * scale
+        state = comp.step(state, Sample(alpha[..., None] * shaded, alpha, sample_imp))
+        return (state, depth), None
 
-    state = comp.init(batch, dtype)
+    carry = (comp.init(batch, dtype), jnp.zeros(batch, dtype))
     steps = jnp.arange(n_samples(volume.shape, spacing, step), dtype=dtype)
-    state, _ = jax.lax.scan(jax.checkpoint(body), state, steps)
-    return comp.finish(state, bg, jnp.asarray(0, dtype))
+    (state, _), _ = jax.lax.scan(jax.checkpoint(body), carry, steps)
+    bg_importance = importance.background_importance(focus) if measured else 0
+    return comp.finish(state, bg, jnp.broadcast_to(jnp.asarray(bg_importance, dtype), batch))
 
 
 def save_png(path, image: Float[Array, "H W C"]) -> None:

@@ -19,14 +19,18 @@ from . import _checks
 from ._types import Array, Float
 from .camera import Camera
 from .composition import COMPOSITORS
+from .importance import Focus, Importance
+from .lao import LocalAmbientOcclusion
+from .obscurance import ObscuranceParams
 from .render import march
+from .saliency import SaliencyModulation
 from .shading import SHADERS, Phong
 from .transfer import TransferFunction
 
 _WHERE = "volshade.Scene"
 
 
-def _no_ambient(scene: "Scene") -> None:
+def _nothing(scene: "Scene") -> None:
     return None
 
 
@@ -34,9 +38,29 @@ def _volume_ambient(scene: "Scene") -> Array:
     return scene.ambient_volume
 
 
+def _lao_ambient(scene: "Scene") -> Array:
+    return scene.lao(scene.transfer.opacity(scene.volume))
+
+
+def _obscurance_ambient(scene: "Scene") -> Array:
+    return scene.obscurance(scene.volume, scene.transfer)
+
+
+def _saliency_factor(scene: "Scene") -> Array:
+    return scene.saliency(scene.volume, scene.transfer)
+
+
+# Effect tables: stage -> effect name -> what to compute for it. An effect that is off
+# maps to `_nothing`, so it is never traced.
 AMBIENT: dict[str, Callable[["Scene"], Array | None]] = {
-    "none": _no_ambient,
+    "none": _nothing,
     "volume": _volume_ambient,
+    "lao": _lao_ambient,
+    "obscurance": _obscurance_ambient,
+}
+MODULATION: dict[str, Callable[["Scene"], Array | None]] = {
+    "none": _nothing,
+    "saliency": _saliency_factor,
 }
 
 
@@ -48,12 +72,26 @@ class Scene(eqx.Module):
         transfer: the transfer function.
         spacing: voxel size ``(sd, sh, sw)`` in mm (static).
         step: sampling distance along rays in mm (static).
-        ambient: ambient term: ``"none"`` or ``"volume"`` (use ``ambient_volume``).
+        ambient: ambient term: ``"none"``, ``"volume"`` (use ``ambient_volume``),
+            ``"lao"`` (ray-marched local ambient occlusion of the transfer-function
+            opacity, with ``lao``) or ``"obscurance"`` (grey or colour-bleeding
+            obscurance, with ``obscurance``).
         ambient_volume: ``(D, H, W)`` or ``(D, H, W, 3)`` precomputed ambient
             factor in [0, 1] for ``ambient="volume"``.
-        shading: ``"none"`` (emission-absorption) or ``"phong"``.
+        lao: :class:`~volshade.lao.LocalAmbientOcclusion` parameters (radius and
+            offset in voxels are leaves).
+        obscurance: :class:`~volshade.obscurance.ObscuranceParams`.
+        modulation: opacity modulation: ``"none"`` or ``"saliency"`` (obscurance
+            saliency, with ``saliency``).
+        saliency: :class:`~volshade.saliency.SaliencyModulation` parameters.
+        shading: ``"none"`` (emission-absorption), ``"phong"`` (Blinn--Phong with
+            the ambient term) or ``"obscurance"`` (eq. 5 of Ruiz et al.: all local
+            lighting scaled by the ambient volume).
         phong: Blinn--Phong coefficients.
-        composition: ``"standard"`` front-to-back compositing.
+        composition: ``"standard"`` or ``"importance"`` (importance-aware, with
+            ``importance`` and optional per-ray ``focus`` weights).
+        importance: :class:`~volshade.importance.Importance` weights.
+        focus: optional :class:`~volshade.importance.Focus` (focus plus context).
         background: ``(3,)`` RGB background colour.
 
     Example:
@@ -70,9 +108,15 @@ class Scene(eqx.Module):
     step: float = eqx.field(static=True, default=0.5)
     ambient: str = eqx.field(static=True, default="none")
     ambient_volume: Array | None = None
+    lao: LocalAmbientOcclusion = eqx.field(default_factory=LocalAmbientOcclusion)
+    obscurance: ObscuranceParams = eqx.field(default_factory=ObscuranceParams)
+    modulation: str = eqx.field(static=True, default="none")
+    saliency: SaliencyModulation = eqx.field(default_factory=SaliencyModulation)
     shading: str = eqx.field(static=True, default="none")
     phong: Phong = eqx.field(default_factory=Phong)
     composition: str = eqx.field(static=True, default="standard")
+    importance: Importance = eqx.field(default_factory=Importance)
+    focus: Focus | None = None
     background: Float[Array, "3"] = eqx.field(converter=jnp.asarray, default=(0.0, 0.0, 0.0))
 
     def __check_init__(self):
@@ -83,18 +127,21 @@ class Scene(eqx.Module):
                             f"got {type(self.transfer).__name__}.")
         _checks.positive_float(self.step, "step", _WHERE)
         _checks.option(self.ambient, AMBIENT, "ambient", _WHERE)
+        _checks.option(self.modulation, MODULATION, "modulation", _WHERE)
         _checks.option(self.shading, SHADERS, "shading", _WHERE)
         _checks.option(self.composition, COMPOSITORS, "composition", _WHERE)
         if self.ambient == "volume" and self.ambient_volume is None:
             raise ValueError(f"{_WHERE}: ambient='volume' needs `ambient_volume`.")
+        if self.focus is not None and self.composition != "importance":
+            raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
         if jnp.shape(self.background) != (3,):
             raise ValueError(f"{_WHERE}: `background` must be an RGB triple, "
                              f"got shape {jnp.shape(self.background)}.")
 
     def plan(self) -> dict[str, str]:
         """The effects a render of this scene computes, by stage."""
-        return {"ambient": self.ambient, "shading": self.shading,
-                "composition": self.composition}
+        return {"ambient": self.ambient, "modulation": self.modulation,
+                "shading": self.shading, "composition": self.composition}
 
 
 def render(scene: Scene, camera: Camera) -> Float[Array, "H W 4"]:
@@ -108,6 +155,9 @@ def render(scene: Scene, camera: Camera) -> Float[Array, "H W 4"]:
         >>> image = render(scene, Camera.orbit(azimuth=30, elevation=20))
     """
     ambient = AMBIENT[scene.ambient](scene)
+    opacity_scale = MODULATION[scene.modulation](scene)
+    focus = None if scene.focus is None else scene.focus.weights(camera.image_shape)
     return march(scene.volume, scene.transfer, camera, spacing=scene.spacing, step=scene.step,
                  shading=scene.shading, phong=scene.phong, ambient=ambient,
-                 composition=scene.composition, background=scene.background)
+                 opacity_scale=opacity_scale, composition=scene.composition,
+                 importance=scene.importance, focus=focus, background=scene.background)

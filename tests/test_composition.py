@@ -1,0 +1,403 @@
+"""Tests of volshade.composition: standard and importance-aware compositing (Pinto & Freitas
+2010)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import reference_composition as ref
+from helpers import check_grad_fd
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from volshade.composition import (
+    COMPOSITORS,
+    ImportanceState,
+    Sample,
+    composite,
+    importance_init,
+    importance_step,
+    modulation,
+    standard_init,
+    standard_step,
+)
+
+jcomposite = jax.jit(composite)
+
+
+def random_rays(n_rays, n_samples, *, seed=0, alpha=(0.05, 0.95), imp_scale=2.0):
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(*alpha, (n_rays, n_samples))
+    c = rng.uniform(0, 1, (n_rays, n_samples, 3)) * a[..., None]
+    imp = rng.normal(0, imp_scale, (n_rays, n_samples))
+    return c, a, imp
+
+
+def scan_states(colors, alphas, importances):
+    """All intermediate importance states of one batch of rays (front first)."""
+    colors, alphas, importances = map(jnp.asarray, (colors, alphas, importances))
+    state = importance_init(alphas.shape[:-1], alphas.dtype)
+    xs = Sample(jnp.moveaxis(colors, -2, 0), jnp.moveaxis(alphas, -1, 0),
+                jnp.moveaxis(importances, -1, 0))
+    return jax.lax.scan(lambda s, x: (importance_step(s, x), s), state, xs)
+
+
+# --------------------------------------------------------------------------- reference
+
+
+def test_matches_reference_random():
+    c, a, imp = random_rays(40, 12, seed=1)
+    rng = np.random.default_rng(2)
+    bg, bgi = rng.uniform(0, 1, 3), rng.normal(0, 2, 40)
+    out = jcomposite(c, a, importance=imp, background=bg, background_importance=bgi)
+    expected = np.stack([ref.importance(c[r], a[r], imp[r], bg, bgi[r]) for r in range(40)])
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+    out = jcomposite(c, a, importance=imp, background=bg)
+    expected = np.stack([ref.importance(c[r], a[r], imp[r], bg) for r in range(40)])
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+
+
+def test_matches_reference_with_exact_zero_and_one_alphas():
+    c, a, imp = random_rays(30, 10, seed=3)
+    rng = np.random.default_rng(4)
+    a = np.where(rng.uniform(size=a.shape) < 0.2, 0.0, a)
+    a = np.where(rng.uniform(size=a.shape) < 0.1, 1.0, a)
+    c = c * (a > 0)[..., None]
+    out = jcomposite(c, a, importance=imp, background=np.array([0.2, 0.3, 0.4]))
+    expected = np.stack([ref.importance(c[r], a[r], imp[r], [0.2, 0.3, 0.4]) for r in range(30)])
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+
+
+def test_standard_matches_reference():
+    c, a, _ = random_rays(20, 9, seed=5)
+    out = jcomposite(c, a, background=np.array([1.0, 0.5, 0.0]))
+    expected = np.stack([ref.standard(c[r], a[r], [1.0, 0.5, 0.0]) for r in range(20)])
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+
+
+def test_accumulated_importance_matches_reference():
+    c, a, imp = random_rays(10, 8, seed=6)
+    final, _ = scan_states(c, a, imp)
+    for r in range(10):
+        c_ref, a_ref, i_ref, _ = ref.importance(c[r], a[r], imp[r], return_state=True)
+        np.testing.assert_allclose(final.accumulated_importance[r], i_ref, atol=1e-12)
+        np.testing.assert_allclose(final.opacity[r], a_ref, atol=1e-14)
+        np.testing.assert_allclose(final.premultiplied_color[r], c_ref, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- properties
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_zero_importance_equals_standard(dtype):
+    c, a, _ = random_rays(64, 16, seed=7, alpha=(0.0, 1.0))
+    c, a = jnp.asarray(c, dtype), jnp.asarray(a, dtype)
+    bg = jnp.asarray([0.1, 0.7, 0.3], dtype)
+    std = jcomposite(c, a, background=bg)
+    imp = jcomposite(c, a, importance=jnp.zeros_like(a), background=bg)
+    assert imp.dtype == dtype
+    np.testing.assert_allclose(imp, std, atol=1e-6)
+    # equal importances, whatever their level, also give standard compositing
+    imp = jcomposite(c, a, importance=jnp.full_like(a, 7.5), background=bg)
+    np.testing.assert_allclose(imp, std, atol=1e-6)
+
+
+def test_opaque_samples_importance_is_max_and_modulations_multiply():
+    # three opaque samples I_A < I_C < I_B (sec. III-A, eq. 5)
+    i_a, i_c, i_b = 0.3, 1.1, 2.5
+    one = jnp.ones(())
+    s = importance_init((), jnp.float64)
+    s = importance_step(s, Sample(jnp.array([1.0, 0, 0]), one, jnp.asarray(i_a)))
+    m = modulation(s, i_b)                                   # two-sample case A, B
+    m1 = modulation(s, i_c)
+    s3 = importance_step(s, Sample(jnp.array([0, 1.0, 0]), one, jnp.asarray(i_c)))
+    np.testing.assert_allclose(s3.accumulated_importance, i_c)
+    m2 = modulation(s3, i_b)
+    np.testing.assert_allclose(m, m2 * m1, rtol=1e-14)
+    np.testing.assert_allclose(m, np.exp(i_a - i_b), rtol=1e-14)
+    # the colour contribution of A is the same in both cases
+    two = jcomposite(jnp.array([[1.0, 0, 0], [0, 0, 1.0]]), jnp.ones(2),
+                    importance=jnp.array([i_a, i_b]))
+    three = jcomposite(jnp.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]), jnp.ones(3),
+                      importance=jnp.array([i_a, i_c, i_b]))
+    np.testing.assert_allclose(two[0], three[0], rtol=1e-14)
+    np.testing.assert_allclose(two[0], m, rtol=1e-14)
+    # accumulated importance of opaque samples is the maximum, in any order
+    rng = np.random.default_rng(8)
+    imps = rng.normal(0, 3, (20, 6))
+    final, _ = scan_states(np.zeros((20, 6, 3)), np.ones((20, 6)), imps)
+    np.testing.assert_allclose(final.accumulated_importance, imps.max(axis=1), rtol=1e-14)
+
+
+@pytest.mark.parametrize("sample_importance", [-1e4, -3.0, 0.0, 3.0, 1e4])
+def test_zero_opacity_sample_changes_nothing(sample_importance):
+    c, a, imp = random_rays(16, 6, seed=9)
+    base = jcomposite(c, a, importance=imp, background=np.array([0.5, 0.5, 0.5]),
+                     background_importance=0.5)
+    c2 = np.insert(c, 3, [0.0, 0.0, 0.0], axis=1)
+    a2 = np.insert(a, 3, 0.0, axis=1)
+    i2 = np.insert(imp, 3, sample_importance, axis=1)
+    out = jcomposite(c2, a2, importance=i2, background=np.array([0.5, 0.5, 0.5]),
+                    background_importance=0.5)
+    np.testing.assert_allclose(out, base, atol=1e-14)
+    # also as the very first sample of a ray
+    out = jcomposite(np.insert(c, 0, 0.0, axis=1), np.insert(a, 0, 0.0, axis=1),
+                    importance=np.insert(imp, 0, sample_importance, axis=1),
+                    background=np.array([0.5, 0.5, 0.5]), background_importance=0.5)
+    np.testing.assert_allclose(out, base, atol=1e-14)
+
+
+def test_accumulated_opacity_equals_standard():
+    c, a, imp = random_rays(32, 20, seed=10, alpha=(0.0, 1.0), imp_scale=50.0)
+    _, states = scan_states(c, a, imp)
+    std = standard_init((32,), jnp.float64)
+    for i in range(20):
+        np.testing.assert_array_equal(states.transmittance[i], std.transmittance)
+        std = standard_step(std, Sample(jnp.asarray(c[:, i]), jnp.asarray(a[:, i])))
+    out = jcomposite(c, a, importance=imp)
+    np.testing.assert_array_equal(out[:, 3], 1 - std.transmittance)
+
+
+def test_importance_shift_invariance():
+    c, a, imp = random_rays(16, 10, seed=11)
+    bg = np.array([0.2, 0.9, 0.1])
+    base = jcomposite(c, a, importance=imp, background=bg, background_importance=1.0)
+    shifted = jcomposite(c, a, importance=imp + 123.0, background=bg, background_importance=124.0)
+    np.testing.assert_allclose(shifted, base, atol=1e-10)
+
+
+def test_more_important_sample_shows_through():
+    # an opaque red front sample hides green in standard compositing, not with importance
+    c = jnp.array([[1.0, 0, 0], [0, 1.0, 0]])
+    a = jnp.array([1.0, 1.0])
+    assert jcomposite(c, a)[1] == 0
+    out = jcomposite(c, a, importance=jnp.array([0.0, 10.0]))
+    np.testing.assert_allclose(out, [np.exp(-10), 1 - np.exp(-10), 0, 1], rtol=1e-12)
+
+
+def test_background_importance_fades_volume():
+    c, a, imp = random_rays(8, 6, seed=12)
+    bg = np.array([0.3, 0.6, 0.9])
+    none = jcomposite(c, a, importance=imp, background=bg)
+    np.testing.assert_allclose(none[..., 3], jcomposite(c, a, background=bg)[..., 3], atol=1e-14)
+    low = jcomposite(c, a, importance=imp, background=bg, background_importance=-1e4)
+    np.testing.assert_allclose(low, none, atol=1e-14)
+    high = jcomposite(c, a, importance=imp, background=bg, background_importance=1e4)
+    np.testing.assert_allclose(high[..., :3], np.broadcast_to(bg, (8, 3)), atol=1e-14)
+    np.testing.assert_allclose(high[..., 3], 0, atol=1e-14)
+    alphas = [jcomposite(c, a, importance=imp, background=bg, background_importance=b)[..., 3]
+              for b in (-2.0, 0.0, 2.0, 4.0, 8.0)]
+    assert np.all(np.diff(np.stack(alphas), axis=0) <= 1e-15)
+
+
+def test_tends_to_coloured_mip_as_intensity_weight_grows():
+    rng = np.random.default_rng(13)
+    n_rays, n_samples = 256, 24
+    intensity = rng.uniform(0, 1, (n_rays, n_samples))
+    a = rng.uniform(0.3, 0.9, (n_rays, n_samples))
+    colors = rng.uniform(0, 1, (n_rays, n_samples, 3))
+    mip = np.take_along_axis(colors, intensity.argmax(axis=1)[:, None, None], axis=1)[:, 0]
+    dists = []
+    for weight in (0.0, 2.0, 8.0, 32.0, 128.0, 1024.0):
+        rgba = jcomposite(colors * a[..., None], a, importance=weight * intensity)
+        avg = rgba[:, :3] / rgba[:, 3:]
+        dists.append(float(np.mean(np.abs(avg - mip))))
+    assert all(d1 < d0 for d0, d1 in zip(dists, dists[1:], strict=False)), dists
+    assert dists[-1] < 0.15 * dists[0], dists
+
+
+# --------------------------------------------------------------------------- hard cases
+
+HARD_CASES = {
+    "alpha_zero": ([0.0, 0.0, 0.0], [1.0, 5.0, -2.0]),
+    "alpha_one": ([1.0, 1.0, 1.0], [0.0, 3.0, 1.0]),
+    "gap_up_1e4": ([0.5, 0.5, 0.7], [0.0, 1e4, 0.0]),
+    "gap_down_1e4": ([0.5, 0.5, 0.7], [1e4, 0.0, 1e4]),
+    "gap_opaque_1e4": ([1.0, 0.3, 1.0], [-1e4, 1e4, 0.0]),
+    "all_transparent": ([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]),
+    "single_opaque": ([0.0, 1.0, 0.0], [2.0, 1.0, 3.0]),
+    "alternating": ([1.0, 0.0, 1.0], [0.0, 1e4, 5.0]),
+    "negative": ([0.4, 0.9, 0.2], [-50.0, -3.0, -1e4]),
+    "tiny_alpha_high_importance": ([0.9, 1e-7, 0.5], [0.0, 1e4, 0.0]),
+}
+
+
+def _hard_inputs(alphas, importances, dtype):
+    a = jnp.asarray(alphas, dtype)
+    base = jnp.asarray([[0.9, 0.2, 0.1], [0.1, 0.8, 0.3], [0.2, 0.3, 1.0]], dtype)
+    return base * a[:, None], a, jnp.asarray(importances, dtype)
+
+
+def _loss(c, a, imp, bg, bgi):
+    rgba = composite(c, a, importance=imp, background=bg, background_importance=bgi)
+    return jnp.sum(rgba * jnp.asarray([1.0, 2.0, 3.0, 4.0], rgba.dtype))
+
+
+_jit_grad = jax.jit(jax.grad(_loss, argnums=(0, 1, 2, 3, 4)))
+
+
+@pytest.mark.parametrize("case", sorted(HARD_CASES))
+@pytest.mark.parametrize("bg_importance", [None, -1e4, 0.0, 1e4])
+def test_hard_cases(case, bg_importance):
+    alphas, importances = HARD_CASES[case]
+    results = {}
+    for dtype in (jnp.float32, jnp.float64):
+        c, a, imp = _hard_inputs(alphas, importances, dtype)
+        bg = jnp.asarray([0.25, 0.5, 0.75], dtype)
+        bgi = jnp.asarray(-jnp.inf if bg_importance is None else bg_importance, dtype)
+        rgba = jcomposite(c, a, importance=imp, background=bg, background_importance=bgi)
+        assert rgba.dtype == dtype
+        assert np.all(np.isfinite(rgba)) and np.all(rgba >= 0) and np.all(rgba <= 1 + 1e-6)
+        grads = _jit_grad(c, a, imp, bg, bgi)
+        for g in grads:
+            assert np.all(np.isfinite(g)), (case, dtype, grads)
+        results[dtype] = np.asarray(rgba, np.float64)
+    np.testing.assert_allclose(results[jnp.float32], results[jnp.float64], atol=1e-4)
+
+
+@st.composite
+def hard_rays(draw):
+    n = 6
+    alpha = st.one_of(st.sampled_from([0.0, 1.0, 1e-6, 0.5]), st.floats(0.0, 1.0, width=32))
+    imp = st.one_of(st.sampled_from([-1e4, 0.0, 1e4, -30.0, 30.0]), st.floats(-5.0, 5.0, width=32))
+    color = st.floats(0.0, 1.0, width=32)
+    alphas = draw(st.lists(alpha, min_size=n, max_size=n))
+    imps = draw(st.lists(imp, min_size=n, max_size=n))
+    colors = draw(st.lists(st.tuples(color, color, color), min_size=n, max_size=n))
+    bgi = draw(st.one_of(st.none(), imp))
+    return np.asarray(colors) * np.asarray(alphas)[:, None], np.asarray(alphas), \
+        np.asarray(imps), bgi
+
+
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(hard_rays())
+def test_hypothesis_hard_rays(ray):
+    c, a, imp, bgi = ray
+    results = {}
+    for dtype in (jnp.float32, jnp.float64):
+        args = [jnp.asarray(x, dtype) for x in (c, a, imp)]
+        bg = jnp.asarray([0.3, 0.2, 0.1], dtype)
+        b = jnp.asarray(-jnp.inf if bgi is None else bgi, dtype)
+        rgba = np.asarray(jcomposite(args[0], args[1], importance=args[2], background=bg,
+                                     background_importance=b))
+        assert np.all(np.isfinite(rgba)) and np.all(rgba >= -1e-7) and np.all(rgba <= 1 + 1e-6)
+        for g in _jit_grad(*args, bg, b):
+            assert np.all(np.isfinite(g))
+        results[dtype] = rgba.astype(np.float64)
+    np.testing.assert_allclose(results[jnp.float32], results[jnp.float64], atol=1e-4)
+    expected = ref.importance(c, a, imp, [0.3, 0.2, 0.1], -np.inf if bgi is None else bgi)
+    np.testing.assert_allclose(results[jnp.float64], expected, atol=1e-9)
+
+
+def test_gradient_at_singular_points_is_finite_for_standard():
+    c, a, _ = _hard_inputs([1.0, 0.0, 1.0], [0, 0, 0], jnp.float64)
+    g = jax.grad(lambda a: jcomposite(c, a).sum())(a)
+    assert np.all(np.isfinite(g))
+
+
+# --------------------------------------------------------------------------- transforms
+
+
+def test_jit_equals_eager_and_vmap_equals_stack():
+    c, a, imp = map(jnp.asarray, random_rays(6, 8, seed=14))
+    bgi = jnp.linspace(-1.0, 1.0, 6)
+    eager = composite(c, a, importance=imp, background_importance=bgi)
+    jitted = jax.jit(composite)(c, a, importance=imp, background_importance=bgi)
+    np.testing.assert_allclose(jitted, eager, atol=1e-14)
+    vmapped = jax.vmap(lambda c, a, i, b: composite(c, a, importance=i, background_importance=b))(
+        c, a, imp, bgi)
+    stacked = jnp.stack([composite(c[r], a[r], importance=imp[r], background_importance=bgi[r])
+                         for r in range(6)])
+    np.testing.assert_allclose(vmapped, stacked, atol=1e-14)
+    np.testing.assert_allclose(vmapped, eager, atol=1e-14)
+    # batch-shape agnostic: (2, 3) rays give the same as 6 rays
+    out = composite(c.reshape(2, 3, 8, 3), a.reshape(2, 3, 8), importance=imp.reshape(2, 3, 8),
+                    background_importance=bgi.reshape(2, 3))
+    np.testing.assert_allclose(out.reshape(6, 4), eager, atol=1e-14)
+
+
+@pytest.mark.parametrize("wrt", ["colors", "alphas", "importance", "background_importance"])
+def test_gradients_match_finite_differences(wrt):
+    c, a, imp = map(jnp.asarray, random_rays(4, 6, seed=15, alpha=(0.1, 0.9)))
+    bg = jnp.asarray([0.2, 0.4, 0.6])
+    bgi = jnp.asarray([0.5, -0.5, 1.0, 0.0])
+    args = {"colors": c, "alphas": a, "importance": imp, "background_importance": bgi}
+    weights = jnp.asarray([[0.3, 0.5, 0.7, 1.1]])
+
+    def f(x):
+        kw = {**args, wrt: x}
+        rgba = jcomposite(kw["colors"], kw["alphas"], importance=kw["importance"], background=bg,
+                         background_importance=kw["background_importance"])
+        return jnp.sum(rgba * weights)
+
+    check_grad_fd(f, args[wrt], rtol=1e-4, n_dirs=4)
+
+
+def test_standard_gradients_match_finite_differences():
+    c, a, _ = map(jnp.asarray, random_rays(3, 5, seed=16))
+    check_grad_fd(lambda a: jnp.sum(jcomposite(c, a, background=jnp.ones(3)) ** 2), a)
+
+
+# --------------------------------------------------------------------------- interface
+
+
+def test_compositor_interface():
+    assert set(COMPOSITORS) == {"standard", "importance"}
+    c, a, imp = map(jnp.asarray, random_rays(5, 7, seed=17))
+    for name, comp in COMPOSITORS.items():
+        state = comp.init((5,), jnp.float64)
+        for i in range(7):
+            state = comp.step(state, Sample(c[:, i], a[:, i], imp[:, i]))
+        rgba = comp.finish(state, jnp.zeros(3), jnp.asarray(-jnp.inf))
+        kw = {"importance": imp} if name == "importance" else {}
+        np.testing.assert_allclose(rgba, jcomposite(c, a, **kw), atol=1e-14)
+    assert isinstance(importance_init((2,), jnp.float32), ImportanceState)
+
+
+def test_dtype_follows_input():
+    c, a, imp = random_rays(2, 3)
+    for dtype in (jnp.float32, jnp.float64):
+        out = composite(jnp.asarray(c, dtype), jnp.asarray(a, dtype),
+                        importance=jnp.asarray(imp, dtype))
+        assert out.dtype == dtype
+    assert composite(jnp.asarray(c, jnp.float32), jnp.asarray(a, jnp.float32)).dtype == jnp.float32
+
+
+def test_errors():
+    c, a, imp = random_rays(2, 3)
+    with pytest.raises(ValueError, match="colors"):
+        composite(c[..., :2], a)
+    with pytest.raises(ValueError, match="importance"):
+        composite(c, a, importance=imp[:, :2])
+    with pytest.raises(ValueError, match="background_importance"):
+        composite(c, a, background_importance=1.0)
+    with pytest.raises(ValueError, match="background"):
+        composite(c, a, background=np.zeros(4))
+    with pytest.raises(TypeError, match="colors"):
+        composite(c.astype(complex), a)
+    with pytest.raises(Exception, match="NaN"):
+        composite(c, np.where(a > 0.5, np.nan, a))
+    with pytest.raises(Exception, match=r"\[0, 1\]"):
+        composite(c, a + 1.0)
+    with pytest.raises(Exception, match="NaN"):
+        composite(c, a, importance=np.full_like(imp, np.inf))
+    with pytest.raises(Exception, match="background_importance"):
+        composite(c, a, importance=imp, background_importance=np.inf)
+    with pytest.raises(ValueError, match="importance"):
+        importance_step(importance_init((), jnp.float32),
+                        Sample(jnp.zeros(3, jnp.float32), jnp.zeros((), jnp.float32)))
+
+
+def test_jaxpr_has_no_python_loop_over_samples():
+    c, a, imp = random_rays(2, 64)
+    jaxpr = jax.make_jaxpr(lambda c, a, i: composite(c, a, importance=i))(c, a, imp)
+    assert "scan" in str(jaxpr)
+    assert len(str(jaxpr)) < 20000
+
+
+def test_state_is_a_pytree_usable_by_eqx():
+    s = importance_init((3,), jnp.float32)
+    assert eqx.tree_equal(s, importance_init((3,), jnp.float32))

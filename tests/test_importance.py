@@ -1,0 +1,337 @@
+"""Tests of volshade.importance: importance measures and focus-plus-context weights."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import check_grad_fd
+from jax.flatten_util import ravel_pytree
+
+from volshade.composition import composite
+from volshade.gradient import regression_gradient
+from volshade.importance import (
+    Importance,
+    focus_weights,
+    lighting_importance,
+    normalized_gradient_magnitude,
+    sample_importance,
+    silhouetteness,
+)
+
+WEIGHTS = ("intensity", "extinction", "gradient", "silhouette", "unocclusion", "lighting")
+
+
+# --------------------------------------------------------------------------- reference
+
+
+def _smoothstep(e0, e1, x):
+    t = np.clip((x - e0) / (e1 - e0), 0, 1)
+    return t * t * (3 - 2 * t)
+
+
+def reference_importance(p, intensity, tau, m_g, normal, view, light, depth):
+    """Sec. IV-A/B per sample, in plain float64 numpy loops."""
+    q = {f.name: float(getattr(p, f.name)) for f in dataclasses.fields(p)}
+    out, scales = [], []
+    for x, t, g, n, v, li, d in zip(intensity, tau, m_g, normal, view, light, depth, strict=True):
+        n = n / np.linalg.norm(n)
+        v = v / np.linalg.norm(v)
+        li = li / np.linalg.norm(li)
+        sil = g ** q["silhouette_exponent"] * _smoothstep(
+            q["silhouette_start"], q["silhouette_end"], 1 - abs(v @ n))
+        if n @ v < 0:
+            n = -n
+        h = (li + v) / np.linalg.norm(li + v)
+        light_imp = (3 - max(n @ h, 0) ** q["specular_exponent"]
+                     - max(n @ li, 0) ** q["diffuse_exponent"] - (1 - g) ** q["gradient_exponent"])
+        total = (q["intensity"] * x + q["extinction"] * np.log(1 + t) + q["gradient"] * g
+                 + q["silhouette"] * sil + q["unocclusion"] * (q["unocclusion_offset"] - d)
+                 + q["lighting"] * light_imp)
+        out.append(q["global_weight"] * total)
+        scales.append(np.exp(-q["darkening"] * sil) if q["silhouette"] * q["global_weight"] else 1)
+    return np.array(out), np.array(scales)
+
+
+def random_features(n, seed=0, dtype=jnp.float64):
+    rng = np.random.default_rng(seed)
+    feats = {
+        "intensity": rng.uniform(0, 1, n),
+        "extinction": rng.uniform(0, 5, n),
+        "gradient_magnitude": rng.uniform(0.05, 0.95, n),
+        "normal": rng.normal(size=(n, 3)),
+        "view": rng.normal(size=(n, 3)),
+        "light": rng.normal(size=(n, 3)),
+        "optical_depth": rng.uniform(0, 10, n),
+    }
+    return {k: jnp.asarray(v, dtype) for k, v in feats.items()}
+
+
+PARAMS = Importance(global_weight=1.5, intensity=2.0, extinction=0.7, gradient=1.3,
+                    silhouette=2.5, unocclusion=0.2, lighting=0.9)
+
+
+def test_matches_reference():
+    f = random_features(50, seed=1)
+    imp, scale = sample_importance(PARAMS, **f)
+    expected, exp_scale = reference_importance(
+        PARAMS, *(np.asarray(f[k]) for k in ("intensity", "extinction", "gradient_magnitude",
+                                             "normal", "view", "light", "optical_depth")))
+    np.testing.assert_allclose(imp, expected, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(scale, exp_scale, rtol=1e-12)
+
+
+def test_defaults_and_leaves():
+    p = Importance()
+    assert float(p.global_weight) == 1.0
+    assert all(float(getattr(p, w)) == 0.0 for w in WEIGHTS)
+    assert (float(p.silhouette_exponent), float(p.silhouette_start), float(p.silhouette_end)) \
+        == pytest.approx((1.7, 0.4, 1.0))
+    assert (float(p.specular_exponent), float(p.diffuse_exponent), float(p.gradient_exponent)) \
+        == (50.0, 5.0, 30.0)
+    assert float(p.unocclusion_offset) == 20.0 and float(p.darkening) == 4.0
+    leaves = jax.tree_util.tree_leaves(p)
+    assert len(leaves) == len(dataclasses.fields(p)) and all(eqx.is_array(x) for x in leaves)
+    with pytest.raises(ValueError, match="scalar"):
+        Importance(intensity=jnp.ones(3))
+
+
+def test_zero_weights_give_standard_compositing():
+    f = random_features(8 * 5, seed=2)
+    imp, scale = sample_importance(Importance(), **f)
+    np.testing.assert_array_equal(imp, 0)
+    np.testing.assert_array_equal(scale, 1)
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0, 1, (8, 5))
+    c = rng.uniform(0, 1, (8, 5, 3)) * a[..., None]
+    out = composite(c, a, importance=imp.reshape(8, 5))
+    np.testing.assert_allclose(out, composite(c, a), atol=1e-6)
+
+
+def test_silhouetteness_analytic():
+    v = jnp.array([[1.0, 0, 0]] * 4)
+    n = jnp.array([[0, 1.0, 0], [1.0, 0, 0], [0, 3.0, 0], [-2.0, 0, 0]])
+    sil = silhouetteness(n, v, jnp.array([1.0, 1.0, 0.5, 0.3]))
+    np.testing.assert_allclose(sil, [1.0, 0.0, 0.5 ** 1.7, 0.0], rtol=1e-12)
+    # halfway: |V.N| = 0.3 -> smoothstep(0.4, 1, 0.7) = 0.5
+    n = jnp.array([0.3, np.sqrt(1 - 0.09), 0])
+    np.testing.assert_allclose(silhouetteness(n, v[0], jnp.asarray(1.0)), 0.5, rtol=1e-12)
+
+
+def test_lighting_analytic_and_two_sided():
+    v = jnp.array([0.0, 0, 1.0])
+    for n in (v, -v):  # the normal's sign does not matter
+        np.testing.assert_allclose(lighting_importance(n, v, v, jnp.asarray(1.0)), 1.0)
+        np.testing.assert_allclose(lighting_importance(n, v, v, jnp.asarray(0.0)), 0.0, atol=1e-15)
+    # a normal perpendicular to light and view is unlit: importance 3 - (1 - m_G)^30
+    n = jnp.array([1.0, 0, 0])
+    np.testing.assert_allclose(lighting_importance(n, v, v, jnp.asarray(0.5)), 3 - 0.5 ** 30)
+
+
+def test_measures_individually():
+    f = random_features(6, seed=4)
+    one = {w: 0.0 for w in WEIGHTS}
+    for w, expected in [("intensity", f["intensity"]), ("extinction", jnp.log1p(f["extinction"])),
+                        ("gradient", f["gradient_magnitude"]),
+                        ("unocclusion", 20 - f["optical_depth"])]:
+        p = Importance(**{**one, w: 1.0})
+        np.testing.assert_allclose(sample_importance(p, **f)[0], expected, rtol=1e-12)
+    # global weight scales everything; per-ray weights replace it
+    p2 = Importance(global_weight=3.0, intensity=1.0)
+    np.testing.assert_allclose(sample_importance(p2, intensity=f["intensity"])[0],
+                               3 * f["intensity"], rtol=1e-12)
+    g = jnp.linspace(0, 1, 6)
+    np.testing.assert_allclose(
+        sample_importance(p2, intensity=f["intensity"], global_weight=g)[0], g * f["intensity"])
+
+
+def test_colour_scale_only_with_silhouette_weight():
+    f = random_features(10, seed=5)
+    _, scale = sample_importance(Importance(intensity=1.0), **f)
+    np.testing.assert_array_equal(scale, 1)
+    _, scale = sample_importance(Importance(silhouette=1.0), **f)
+    sil = silhouetteness(f["normal"], f["view"], f["gradient_magnitude"])
+    np.testing.assert_allclose(scale, jnp.exp(-4 * sil))
+    assert np.all((scale > 0) & (scale <= 1))
+    # context rays (per-ray global weight 0) are not darkened
+    _, scale = sample_importance(Importance(silhouette=1.0), **f, global_weight=jnp.zeros(10))
+    np.testing.assert_array_equal(scale, 1)
+
+
+HARD = {
+    "zero_normal": dict(normal=jnp.zeros((4, 3))),
+    "normal_along_view": dict(normal=jnp.array([[1.0, 0, 0]] * 4)),
+    "normal_against_view": dict(normal=jnp.array([[-1.0, 0, 0]] * 4)),
+    "zero_gradient": dict(gradient_magnitude=jnp.zeros(4)),
+    "unit_gradient": dict(gradient_magnitude=jnp.ones(4)),
+    "light_opposite_view": dict(light=jnp.array([-1.0, 0, 0])),
+}
+
+
+def _hard_loss(p, feats):
+    imp, scale = sample_importance(p, **feats)
+    dtype = imp.dtype
+    a = jnp.asarray([[1.0, 0.0], [0.5, 1.0]], dtype)
+    c = jnp.ones((2, 2, 3), dtype) * a[..., None] * scale.reshape(2, 2)[..., None]
+    rgba = composite(c, a, importance=imp.reshape(2, 2),
+                     background_importance=p.background_importance())
+    return jnp.sum(rgba)
+
+
+_jit_hard_grad = jax.jit(jax.grad(_hard_loss))
+_jit_importance = jax.jit(lambda p, f: sample_importance(p, **f))
+
+
+@pytest.mark.parametrize("case", sorted(HARD))
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_hard_features_finite_values_and_weight_gradients(case, dtype):
+    base = dict(intensity=jnp.array([0.0, 0.3, 1.0, 0.5]),
+                extinction=jnp.array([0.0, 1.0, 0.0, 9.0]),
+                gradient_magnitude=jnp.array([0.0, 0.5, 1.0, 0.2]),
+                normal=jnp.array([[0.0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 0]]),
+                view=jnp.array([1.0, 0, 0]), light=jnp.array([0.0, 1, 1]),
+                optical_depth=jnp.array([0.0, 1.0, 25.0, 3.0]))
+    feats = {k: jnp.asarray(v, dtype) for k, v in {**base, **HARD[case]}.items()}
+    params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), PARAMS)
+    imp, scale = _jit_importance(params, feats)
+    assert imp.dtype == dtype and scale.dtype == dtype
+    assert np.all(np.isfinite(imp)) and np.all(np.isfinite(scale))
+    grads = _jit_hard_grad(params, feats)
+    for name in (f.name for f in dataclasses.fields(grads)):
+        assert np.all(np.isfinite(getattr(grads, name))), name
+
+
+def test_weight_gradients_match_finite_differences():
+    f = random_features(12, seed=6)
+    rng = np.random.default_rng(7)
+    a = jnp.asarray(rng.uniform(0.1, 0.9, (3, 4)))
+    colors = jnp.asarray(rng.uniform(0, 1, (3, 4, 3)))
+    flat, unravel = ravel_pytree(PARAMS)
+    flat = flat.astype(jnp.float64)
+
+    def loss(x):
+        p = unravel(x)
+        imp, scale = sample_importance(p, **f)
+        c = colors * (a * scale.reshape(3, 4))[..., None]
+        rgba = composite(c, a, importance=imp.reshape(3, 4), background=jnp.ones(3) * 0.5,
+                         background_importance=p.background_importance())
+        return jnp.sum(rgba * jnp.asarray([[1.0, 2.0, 3.0, 0.5]]))
+
+    g = check_grad_fd(jax.jit(loss), flat, n_dirs=4)
+    assert np.all(np.isfinite(g))
+
+
+def test_jit_and_vmap():
+    f = random_features(12, seed=8)
+    eager = sample_importance(PARAMS, **f)
+    jitted = eqx.filter_jit(sample_importance)(PARAMS, **f)
+    np.testing.assert_allclose(jitted[0], eager[0], rtol=1e-13)
+    batched = {k: v.reshape(3, 4, *v.shape[1:]) for k, v in f.items()}
+    vm = jax.vmap(lambda kw: sample_importance(PARAMS, **kw))(batched)
+    np.testing.assert_allclose(vm[0].reshape(12), eager[0], rtol=1e-13)
+    np.testing.assert_allclose(vm[1].reshape(12), eager[1], rtol=1e-13)
+
+
+def test_sample_importance_errors():
+    with pytest.raises(ValueError, match="at least one feature"):
+        sample_importance(Importance())
+    with pytest.raises(ValueError, match="normal"):
+        sample_importance(Importance(), normal=jnp.ones((4, 2)))
+    with pytest.raises(ValueError, match="broadcast"):
+        sample_importance(Importance(), intensity=jnp.ones(4), extinction=jnp.ones(5))
+
+
+def test_float32_in_float32_out():
+    f = random_features(5, seed=9, dtype=jnp.float32)
+    imp, scale = sample_importance(PARAMS, **f)
+    assert imp.dtype == jnp.float32 and scale.dtype == jnp.float32
+    imp64, _ = sample_importance(PARAMS, **random_features(5, seed=9))
+    np.testing.assert_allclose(imp, imp64, rtol=1e-5, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- gradient magnitude
+
+
+def test_normalized_gradient_magnitude():
+    d = jnp.arange(8.0)
+    vol = jnp.broadcast_to(d[:, None, None] ** 2 / 49.0, (8, 8, 8))
+    m = normalized_gradient_magnitude(regression_gradient(vol, size=3))
+    assert m.shape == (8, 8, 8)
+    np.testing.assert_allclose(jnp.max(m), 1.0)
+    assert np.all(m >= 0)
+    np.testing.assert_array_equal(normalized_gradient_magnitude(jnp.zeros((4, 4, 4, 3))), 0)
+    g = jax.grad(lambda v: normalized_gradient_magnitude(regression_gradient(v, size=3)).sum())(
+        jnp.zeros((6, 6, 6)))
+    assert np.all(np.isfinite(g))
+    with pytest.raises(ValueError, match="D, H, W, 3"):
+        normalized_gradient_magnitude(jnp.zeros((4, 4, 3)))
+
+
+# --------------------------------------------------------------------------- focus + context
+
+
+def test_focus_circular():
+    w = focus_weights((20, 30), center=(10.0, 12.0), radius=5.0, kind="circular",
+                      inside=2.0, outside=0.5)
+    assert w.shape == (20, 30)
+    assert w[10, 12] == 2.0 and w[10, 17] == 2.0 and w[10, 18] == 0.5 and w[0, 0] == 0.5
+    rows, cols = np.mgrid[:20, :30]
+    inside = (rows - 10.0) ** 2 + (cols - 12.0) ** 2 <= 25
+    np.testing.assert_array_equal(w, np.where(inside, 2.0, 0.5))
+
+
+def test_focus_gaussian_values_and_gradients():
+    w = focus_weights((16, 16), center=(4.0, 6.0), radius=3.0, kind="gaussian")
+    np.testing.assert_allclose(w[4, 6], 1.0)
+    np.testing.assert_allclose(w[4, 9], np.exp(-0.5), rtol=1e-12)
+    np.testing.assert_allclose(w[7, 6], np.exp(-0.5), rtol=1e-12)
+    # differentiable in centre and radius
+    x0 = jnp.array([4.3, 6.2, 3.0])
+
+    def f(x):
+        return jnp.sum(focus_weights((16, 16), center=x[:2], radius=x[2], kind="gaussian") ** 2)
+
+    check_grad_fd(jax.jit(f), x0)
+    # at the exact pixel centre the distance is 0: finite gradient
+    g = jax.grad(lambda c: focus_weights((8, 8), center=c, radius=2.0).sum())(jnp.array([3.0, 3.0]))
+    assert np.all(np.isfinite(g))
+
+
+def test_focus_screen_door():
+    w = focus_weights((64, 64), center=(32.0, 32.0), radius=8.0, kind="screen_door",
+                      inside=1.0, outside=0.0)
+    assert set(np.unique(np.asarray(w))) <= {0.0, 1.0}
+    assert np.all(w[30:34, 30:34] == 1.0) and np.all(w[:8, :8] == 0.0)
+    # the local density follows the Gaussian: mean over 4x4 dither cells
+    gauss = focus_weights((64, 64), center=(32.0, 32.0), radius=8.0, kind="gaussian")
+    cells = np.asarray(w).reshape(16, 4, 16, 4).mean(axis=(1, 3))
+    gcells = np.asarray(gauss).reshape(16, 4, 16, 4).mean(axis=(1, 3))
+    assert np.abs(cells - gcells).mean() < 0.05
+    g = jax.grad(lambda c: focus_weights((8, 8), center=c, radius=2.0, kind="screen_door").sum())(
+        jnp.array([3.0, 3.0]))
+    assert np.all(np.isfinite(g))
+
+
+def test_focus_weights_drive_sample_importance():
+    w = focus_weights((4, 5), center=(1.0, 1.0), radius=1.0, kind="circular")
+    imp, _ = sample_importance(Importance(intensity=2.0), intensity=jnp.ones((4, 5)),
+                               global_weight=w)
+    np.testing.assert_allclose(imp, 2 * w)
+
+
+def test_focus_errors_and_dtype():
+    with pytest.raises(ValueError, match="kind"):
+        focus_weights((4, 4), center=(1.0, 1.0), radius=1.0, kind="square")
+    with pytest.raises(ValueError, match="center"):
+        focus_weights((4, 4), center=(1.0, 1.0, 1.0), radius=1.0)
+    with pytest.raises(ValueError, match="image_shape"):
+        focus_weights((4,), center=(1.0, 1.0), radius=1.0)
+    with pytest.raises(Exception, match="radius"):
+        focus_weights((4, 4), center=(1.0, 1.0), radius=0.0)
+    w = focus_weights((4, 4), center=jnp.array([1.0, 1.0], jnp.float32),
+                      radius=jnp.asarray(1.0, jnp.float32))
+    assert w.dtype == jnp.float32
+    assert focus_weights((4, 4), center=(1.0, 1.0), radius=1.0, dtype=jnp.float32).dtype \
+        == jnp.float32

@@ -1,0 +1,430 @@
+r"""Sample importance measures and focus-plus-context weights (Pinto & Freitas 2010, sec. IV).
+
+The importance of a sample is a weighted sum of measures computed on the fly,
+scaled by a global (or per-ray) weight (sec. IV-B):
+
+$$ I_s = W_{global} \sum_n W_n I_n . $$
+
+Measures (sec. IV-A): intensity, extinction $\ln(1+\tau)$, normalised gradient
+magnitude $m_G$, silhouetteness (eq. 9), unocclusion $20 - \sum \tau d$ and
+lighting (eq. 10). The importances feed the importance-aware compositor
+(:mod:`volshade.composition`, ``"importance"``).
+
+Conventions: vectors are in ``(d, h, w)`` order. The view vector $V$ points
+from the sample towards the eye, the light vector $L$ towards the light; both
+are normalised here, and so is the normal $N$ (typically the gradient).
+Normals are turned to face the viewer before lighting (two-sided lighting), so
+the sign convention of the gradient does not matter. Intensities are expected
+in [0, 1]; $m_G$ is the gradient magnitude divided by its maximum over the
+volume (:func:`normalized_gradient_magnitude`), as in the paper.
+
+References:
+    F. de Moura Pinto and C. M. D. S. Freitas, "Importance-aware composition for
+    illustrative volume rendering", SIBGRAPI 2010.
+"""
+
+import dataclasses
+from collections.abc import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from . import _checks
+from ._numerics import safe_div, safe_norm, safe_normalize, safe_pow, smoothstep
+from ._types import Array, ArrayLike, Float
+
+
+def _scalar(x: ArrayLike) -> Array:
+    arr = jnp.asarray(x)
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        arr = arr.astype(jnp.result_type(float))
+    return arr
+
+
+_WEIGHTS = ("intensity", "extinction", "gradient", "silhouette", "unocclusion", "lighting")
+
+
+class Importance(eqx.Module):
+    r"""Weights and shape parameters of the importance measures (sec. IV).
+
+    Every field is a differentiable scalar array leaf, so a fit never recompiles.
+    The defaults (all measure weights 0) give $I_s = 0$ everywhere, for which
+    importance-aware compositing equals standard compositing.
+
+    Attributes:
+        global_weight: $W_{global}$ (sec. IV-B); per-ray weights for focus plus
+            context (sec. IV-D) can override it in :func:`sample_importance`.
+        intensity: $W_{intensity}$ (sec. IV-A1).
+        extinction: $W_\tau$ for $\ln(1 + \tau)$ (sec. IV-A2).
+        gradient: $W_{gradient}$ for $m_G$ (sec. IV-A3).
+        silhouette: $W_{sil}$ for silhouetteness (eq. 9, sec. IV-A4).
+        unocclusion: $W_{unocclusion}$ (sec. IV-A5).
+        lighting: $W_{lighting}$ (eq. 10, sec. IV-A6).
+        background: importance of the background layer before the global
+            weight, $I_{bg} = W_{global} W_{bg}$ (sec. IV-C).
+        silhouette_exponent, silhouette_start, silhouette_end: $p$, $s_1$, $s_2$
+            of eq. 9 (1.7, 0.4, 1.0).
+        darkening: silhouette colour darkening $k$ in $e^{-k\,sil}$ (paper: 4).
+        unocclusion_offset: the constant of unocclusion (paper: 20).
+        specular_exponent, diffuse_exponent, gradient_exponent: $p_1$, $p_2$, $p_3$
+            of eq. 10 (50, 5, 30).
+
+    Example:
+        >>> imp = Importance(intensity=4.0, silhouette=2.0)
+    """
+
+    global_weight: Float[Array, ""] = eqx.field(default=1.0, converter=_scalar)
+    intensity: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
+    extinction: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
+    gradient: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
+    silhouette: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
+    unocclusion: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
+    lighting: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
+    background: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
+    silhouette_exponent: Float[Array, ""] = eqx.field(default=1.7, converter=_scalar)
+    silhouette_start: Float[Array, ""] = eqx.field(default=0.4, converter=_scalar)
+    silhouette_end: Float[Array, ""] = eqx.field(default=1.0, converter=_scalar)
+    darkening: Float[Array, ""] = eqx.field(default=4.0, converter=_scalar)
+    unocclusion_offset: Float[Array, ""] = eqx.field(default=20.0, converter=_scalar)
+    specular_exponent: Float[Array, ""] = eqx.field(default=50.0, converter=_scalar)
+    diffuse_exponent: Float[Array, ""] = eqx.field(default=5.0, converter=_scalar)
+    gradient_exponent: Float[Array, ""] = eqx.field(default=30.0, converter=_scalar)
+
+    def __check_init__(self):
+        for name, value in _leaves(self).items():
+            if jnp.ndim(value) != 0:
+                raise ValueError(f"volshade.Importance: `{name}` must be a scalar, got shape "
+                                 f"{jnp.shape(value)}; for per-ray global weights pass "
+                                 f"`global_weight=` to `sample_importance`.")
+
+    def background_importance(self, global_weight: ArrayLike | None = None) -> Array:
+        r"""Importance of the background layer, $I_{bg} = W_{global} W_{bg}$ (sec. IV-C).
+
+        Args:
+            global_weight: optional per-ray weights ``(...)`` replacing
+                ``self.global_weight`` (focus plus context).
+        """
+        g = self.global_weight if global_weight is None else jnp.asarray(global_weight)
+        return g * self.background
+
+
+def _leaves(params: Importance) -> dict[str, Array]:
+    return {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
+
+
+def _dot(a: Array, b: Array) -> Array:
+    return jnp.sum(a * b, axis=-1)
+
+
+def silhouetteness(
+    normal: Float[ArrayLike, "*batch 3"],
+    view: Float[ArrayLike, "*batch 3"],
+    gradient_magnitude: Float[ArrayLike, "*batch"],
+    *,
+    exponent: ArrayLike = 1.7,
+    start: ArrayLike = 0.4,
+    end: ArrayLike = 1.0,
+) -> Float[Array, "*batch"]:
+    r"""Silhouetteness, eq. 9: $sil = m_G^p\, \mathrm{smoothstep}(s_1, s_2, 1 - |V\cdot N|)$.
+
+    Args:
+        normal: ``(..., 3)`` normal $N$ (normalised here; the zero vector gives
+            $|V \cdot N| = 0$).
+        view: ``(..., 3)`` view vector $V$ (normalised here).
+        gradient_magnitude: ``(...)`` normalised gradient magnitude $m_G$ in [0, 1].
+        exponent, start, end: $p$, $s_1$, $s_2$.
+
+    Returns:
+        ``(...)`` silhouetteness in [0, 1].
+    """
+    n = safe_normalize(jnp.asarray(normal))
+    v = safe_normalize(jnp.asarray(view))
+    facing = jnp.abs(_dot(n, v))
+    return safe_pow(jnp.asarray(gradient_magnitude), exponent) * smoothstep(start, end, 1 - facing)
+
+
+def lighting_importance(
+    normal: Float[ArrayLike, "*batch 3"],
+    view: Float[ArrayLike, "*batch 3"],
+    light: Float[ArrayLike, "*batch 3"],
+    gradient_magnitude: Float[ArrayLike, "*batch"],
+    *,
+    specular_exponent: ArrayLike = 50.0,
+    diffuse_exponent: ArrayLike = 5.0,
+    gradient_exponent: ArrayLike = 30.0,
+) -> Float[Array, "*batch"]:
+    r"""Lighting importance, eq. 10: $3 - (N\cdot H)^{p_1} - (N\cdot L)^{p_2} - (1 - m_G)^{p_3}$.
+
+    $H = (L + V)/|L + V|$ is the half vector. The normal is first turned towards
+    the viewer ($N \leftarrow -N$ where $N \cdot V < 0$) and the dot products are
+    clamped at 0, as in Phong shading, so the powers are of numbers in [0, 1].
+
+    Args:
+        normal, view, light: ``(..., 3)`` vectors $N$, $V$, $L$ (normalised here).
+        gradient_magnitude: ``(...)`` $m_G$ in [0, 1].
+        specular_exponent, diffuse_exponent, gradient_exponent: $p_1$, $p_2$, $p_3$.
+
+    Returns:
+        ``(...)`` importance in [0, 3]: high where the Phong illumination is weak.
+    """
+    n = safe_normalize(jnp.asarray(normal))
+    v = safe_normalize(jnp.asarray(view))
+    l = safe_normalize(jnp.asarray(light))  # noqa: E741
+    n = jnp.where((_dot(n, v) < 0)[..., None], -n, n)
+    h = safe_normalize(l + v)
+    n_h = jnp.clip(_dot(n, h), 0, 1)
+    n_l = jnp.clip(_dot(n, l), 0, 1)
+    m_g = jnp.clip(jnp.asarray(gradient_magnitude), 0, 1)
+    return (3 - safe_pow(n_h, specular_exponent) - safe_pow(n_l, diffuse_exponent)
+            - safe_pow(1 - m_g, gradient_exponent))
+
+
+def sample_importance(
+    params: Importance,
+    *,
+    intensity: Float[ArrayLike, "*batch"] | None = None,
+    extinction: Float[ArrayLike, "*batch"] | None = None,
+    gradient_magnitude: Float[ArrayLike, "*batch"] | None = None,
+    normal: Float[ArrayLike, "*batch 3"] | None = None,
+    view: Float[ArrayLike, "*#batch 3"] | None = None,
+    light: Float[ArrayLike, "*#batch 3"] | None = None,
+    optical_depth: Float[ArrayLike, "*batch"] | None = None,
+    global_weight: Float[ArrayLike, "*#batch"] | None = None,
+) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
+    r"""Importance of one batch of samples and their silhouette colour scale (sec. IV).
+
+    $$ I_s = W_{global} \big(W_{int}\, x + W_\tau \ln(1+\tau) + W_{grad}\, m_G
+        + W_{sil}\, sil + W_{unocc} (c_u - \textstyle\sum\tau d) + W_{light} I_{light}\big) $$
+
+    with $sil$ from eq. 9 (:func:`silhouetteness`), $I_{light}$ from eq. 10
+    (:func:`lighting_importance`) and $c_u = 20$ (sec. IV-A5). The colour scale
+    is $e^{-k\, sil}$ (sec. IV-A4, $k = 4$), applied only where
+    $W_{global} W_{sil} \ne 0$, so the default :class:`Importance` and context
+    rays with zero global weight render exactly as standard DVR.
+
+    A measure whose inputs are not given is left out (it contributes 0):
+    silhouetteness needs ``normal``, ``view`` and ``gradient_magnitude``; lighting
+    needs ``normal``, ``view`` and ``gradient_magnitude`` (``light`` defaults to
+    ``view``, a headlight).
+
+    Args:
+        params: the :class:`Importance` weights.
+        intensity: ``(...)`` sample value $x$, normally in [0, 1].
+        extinction: ``(...)`` extinction coefficient $\tau \ge 0$ (per mm) from the
+            transfer function.
+        gradient_magnitude: ``(...)`` $m_G$ in [0, 1] (gradient magnitude divided
+            by its volume maximum, :func:`normalized_gradient_magnitude`).
+        normal: ``(..., 3)`` normal $N$ (e.g. the gradient; normalised here).
+        view: ``(3,)`` or ``(..., 3)`` vector $V$ towards the eye.
+        light: ``(3,)`` or ``(..., 3)`` vector $L$ towards the light.
+        optical_depth: ``(...)`` $\sum \tau d$ accumulated along the ray in front
+            of the sample (dimensionless; the renderer accumulates it).
+        global_weight: optional scalar or ``(...)`` per-ray weights replacing
+            ``params.global_weight`` (focus plus context, sec. IV-D; see
+            :func:`focus_weights`).
+
+    Returns:
+        ``(importance, color_scale)``, both ``(...)``: $I_s$ (any real) and the
+        factor in (0, 1] to multiply the sample colour by.
+
+    Raises:
+        ValueError: no features given, or shapes that do not broadcast.
+
+    Example:
+        >>> imp, scale = sample_importance(Importance(intensity=5.0), intensity=jnp.ones(8))
+    """
+    where = "volshade.sample_importance"
+    scalars = {"intensity": intensity, "extinction": extinction,
+               "gradient_magnitude": gradient_magnitude, "optical_depth": optical_depth}
+    vectors = {"normal": normal, "view": view, "light": light}
+    scalars = {k: _checks.as_float_array(v, k, where) for k, v in scalars.items() if v is not None}
+    vectors = {k: _checks.as_float_array(v, k, where) for k, v in vectors.items() if v is not None}
+    for k, v in vectors.items():
+        if v.ndim < 1 or v.shape[-1] != 3:
+            raise ValueError(f"{where}: `{k}` must be (..., 3) in (d, h, w) order, got {v.shape}.")
+    if not scalars and not vectors:
+        raise ValueError(f"{where}: give at least one feature (intensity=, extinction=, "
+                         f"gradient_magnitude=, normal=/view=, optical_depth=).")
+    shapes = [v.shape for v in scalars.values()] + [v.shape[:-1] for v in vectors.values()]
+    if global_weight is not None:
+        global_weight = _checks.as_float_array(global_weight, "global_weight", where)
+        shapes.append(global_weight.shape)
+    try:
+        batch = jnp.broadcast_shapes(*shapes)
+    except ValueError as err:
+        raise ValueError(f"{where}: feature shapes {shapes} do not broadcast to one batch shape.") \
+            from err
+    dtype = jnp.result_type(*scalars.values(), *vectors.values())
+    scalars = {k: jnp.broadcast_to(v.astype(dtype), batch) for k, v in scalars.items()}
+    vectors = {k: jnp.broadcast_to(v.astype(dtype), (*batch, 3)) for k, v in vectors.items()}
+    p = {k: v.astype(dtype) for k, v in _leaves(params).items()}
+
+    total = jnp.zeros(batch, dtype)
+    if "intensity" in scalars:
+        total = total + p["intensity"] * scalars["intensity"]
+    if "extinction" in scalars:
+        total = total + p["extinction"] * jnp.log1p(jnp.maximum(scalars["extinction"], 0))
+    m_g = scalars.get("gradient_magnitude")
+    if m_g is not None:
+        total = total + p["gradient"] * m_g
+    if "optical_depth" in scalars:
+        total = total + p["unocclusion"] * (p["unocclusion_offset"] - scalars["optical_depth"])
+    g = p["global_weight"] if global_weight is None else global_weight.astype(dtype)
+    g = jnp.broadcast_to(g, batch)
+    scale = jnp.ones(batch, dtype)
+    n, v = vectors.get("normal"), vectors.get("view")
+    if n is not None and v is not None and m_g is not None:
+        sil = silhouetteness(n, v, m_g, exponent=p["silhouette_exponent"],
+                             start=p["silhouette_start"], end=p["silhouette_end"])
+        total = total + p["silhouette"] * sil
+        scale = jnp.where(g * p["silhouette"] != 0, jnp.exp(-p["darkening"] * sil), scale)
+        light_vec = vectors.get("light", v)
+        total = total + p["lighting"] * lighting_importance(
+            n, v, light_vec, m_g, specular_exponent=p["specular_exponent"],
+            diffuse_exponent=p["diffuse_exponent"], gradient_exponent=p["gradient_exponent"])
+    return g * total, scale
+
+
+def normalized_gradient_magnitude(gradient: Float[ArrayLike, "D H W 3"]) -> Float[Array, "D H W"]:
+    r"""$m_G = |\nabla f| / \max |\nabla f|$ over the volume, in [0, 1] (sec. IV-A4).
+
+    Args:
+        gradient: ``(D, H, W, 3)`` gradient, e.g. from
+            :func:`volshade.regression_gradient` (the paper's choice).
+
+    Returns:
+        ``(D, H, W)`` normalised magnitude; all zeros for a constant volume.
+    """
+    where = "volshade.normalized_gradient_magnitude"
+    gradient = _checks.as_float_array(gradient, "gradient", where)
+    if gradient.ndim != 4 or gradient.shape[-1] != 3:
+        raise ValueError(f"{where}: `gradient` must be (D, H, W, 3), got {gradient.shape}.")
+    gradient = _checks.finite(gradient, "gradient", where)
+    mag = safe_norm(gradient)
+    return safe_div(mag, jnp.max(mag))
+
+
+# --------------------------------------------------------------------------- focus + context
+
+# 4x4 ordered-dither (Bayer) thresholds in (0, 1).
+_BAYER = (np.array([[0, 8, 2, 10], [12, 4, 14, 6], [3, 11, 1, 9], [15, 7, 13, 5]]) + 0.5) / 16
+
+
+def _circular(dist, radius, rows, cols):
+    return (dist <= radius).astype(dist.dtype)
+
+
+def _gaussian(dist, radius, rows, cols):
+    return jnp.exp(-0.5 * jnp.square(safe_div(dist, radius)))
+
+
+def _screen_door(dist, radius, rows, cols):
+    threshold = jnp.asarray(_BAYER, dist.dtype)[rows % 4][:, cols % 4]  # (H, W)
+    return (_gaussian(dist, radius, rows, cols) > threshold).astype(dist.dtype)
+
+
+FOCUS_KINDS: dict[str, Callable[..., Array]] = {
+    "circular": _circular,
+    "gaussian": _gaussian,
+    "screen_door": _screen_door,
+}
+
+
+def focus_weights(
+    image_shape: tuple[int, int],
+    *,
+    center: Float[ArrayLike, "2"],
+    radius: Float[ArrayLike, ""],
+    kind: str = "gaussian",
+    inside: Float[ArrayLike, ""] = 1.0,
+    outside: Float[ArrayLike, ""] = 0.0,
+    dtype=None,
+) -> Float[Array, "H W"]:
+    r"""Per-ray global importance weights for focus plus context (sec. IV-D).
+
+    With $r$ the distance (pixels) of pixel $(i, j)$ to the focus centre and
+    $R$ the radius, the weight is $w = o + (n - o) f(r)$ ($n$ = ``inside``,
+    $o$ = ``outside``) with
+
+    * ``"circular"``: $f = [r \le R]$ (a step);
+    * ``"gaussian"``: $f = e^{-r^2 / (2R^2)}$ (smooth; differentiable in centre and radius);
+    * ``"screen_door"``: $f = [e^{-r^2/(2R^2)} > b_{ij}]$ with $b$ a 4x4 ordered-dither
+      (Bayer) pattern, so the density of focus pixels follows the Gaussian.
+
+    Pass the result as ``global_weight=`` to :func:`sample_importance` (the
+    context renders as standard DVR where the weight is 0).
+
+    Args:
+        image_shape: ``(H, W)`` pixels (static).
+        center: ``(2,)`` focus centre ``(row, column)`` in pixels (pixel centres at
+            integer coordinates).
+        radius: focus radius (pixels, > 0).
+        kind: ``"circular"``, ``"gaussian"`` or ``"screen_door"``.
+        inside: weight at the focus centre.
+        outside: weight far from the focus.
+        dtype: output dtype (default: float of the inputs).
+
+    Returns:
+        ``(H, W)`` weights between ``outside`` and ``inside``.
+
+    Raises:
+        ValueError: unknown ``kind``, bad ``image_shape`` or ``center`` shape.
+
+    Example:
+        >>> w = focus_weights((64, 64), center=(32.0, 20.0), radius=10.0, kind="circular")
+    """
+    where = "volshade.focus_weights"
+    fn = _checks.option(kind, FOCUS_KINDS, "kind", where)
+    if not isinstance(image_shape, tuple | list) or len(image_shape) != 2:
+        raise ValueError(f"{where}: `image_shape` must be (H, W), got {image_shape!r}.")
+    h, w = (_checks.positive_int(s, "image_shape", where) for s in image_shape)
+    center = _checks.as_float_array(center, "center", where)
+    if center.shape != (2,):
+        raise ValueError(f"{where}: `center` must be (row, column), got shape {center.shape}.")
+    radius = _checks.as_float_array(radius, "radius", where)
+    if radius.ndim != 0:
+        raise ValueError(f"{where}: `radius` must be a scalar (pixels), got shape {radius.shape}.")
+    inside = _checks.as_float_array(inside, "inside", where)
+    outside = _checks.as_float_array(outside, "outside", where)
+    if dtype is None:
+        dtype = jnp.result_type(center, radius, inside, outside)
+    radius = eqx.error_if(radius.astype(dtype), radius <= 0,
+                          f"{where}: `radius` must be > 0 pixels.")
+    rows, cols = jnp.arange(h), jnp.arange(w)
+    dr = rows.astype(dtype)[:, None] - center[0].astype(dtype)
+    dc = cols.astype(dtype)[None, :] - center[1].astype(dtype)
+    dist = safe_norm(jnp.stack(jnp.broadcast_arrays(dr, dc), axis=-1))
+    f = fn(dist, radius, rows, cols)
+    return outside.astype(dtype) + (inside.astype(dtype) - outside.astype(dtype)) * f
+
+
+class Focus(eqx.Module):
+    """Focus plus context for a :class:`volshade.Scene`, independent of the image size.
+
+    Attributes:
+        center: ``(2,)`` focus centre ``(row, column)`` as fractions of the image
+            height and width (``(0.5, 0.5)`` is the centre).
+        radius: radius as a fraction of the image height.
+        kind: ``"circular"``, ``"gaussian"`` or ``"screen_door"`` (static).
+        inside, outside: global weights at the focus centre and far from it.
+    """
+
+    center: Float[Array, "2"] = eqx.field(converter=jnp.asarray, default=(0.5, 0.5))
+    radius: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.25)
+    kind: str = eqx.field(static=True, default="gaussian")
+    inside: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
+    outside: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
+
+    def __check_init__(self):
+        _checks.option(self.kind, FOCUS_KINDS, "focus kind", "volshade.Focus")
+        if jnp.shape(self.center) != (2,):
+            raise ValueError(f"volshade.Focus: `center` must be (row, column) fractions, "
+                             f"got shape {jnp.shape(self.center)}.")
+
+    def weights(self, image_shape: tuple[int, int]) -> Float[Array, "H W"]:
+        """Per-ray weights for an image of ``image_shape`` (:func:`focus_weights`)."""
+        h, w = image_shape
+        center = self.center * jnp.asarray([h, w], self.center.dtype) - 0.5
+        return focus_weights(image_shape, center=center, radius=self.radius * h, kind=self.kind,
+                             inside=self.inside, outside=self.outside)
