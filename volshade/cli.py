@@ -8,7 +8,6 @@ name (colin27, mni152: found via VOLSHADE_DATA) or a path to a NIfTI file.
 """
 
 import argparse
-import os
 import pathlib
 import sys
 import time
@@ -22,6 +21,8 @@ from tqdm import tqdm
 
 from . import data, transfer
 from .camera import Camera
+from .importance import Focus, Importance
+from .lao import LocalAmbientOcclusion
 from .render import save_png
 from .scene import AMBIENT, Scene, render
 from .shading import SHADERS
@@ -44,7 +45,8 @@ def _load_volume(spec: str, downsample: int, size: int):
     if pathlib.Path(spec).suffix in (".nii", ".gz"):
         return data.load_nifti(spec, downsample=downsample)
     valid = ", ".join([*data.PHANTOMS, *data.DATASETS])
-    raise SystemExit(f"volshade: unknown volume {spec!r}; use one of {valid} or a .nii/.nii.gz path.")
+    raise SystemExit(f"volshade: unknown volume {spec!r}; use one of {valid} "
+                     f"or a .nii/.nii.gz path.")
 
 
 def _run_jobs(jobs: list[Job], out: pathlib.Path) -> list[tuple[str, float]]:
@@ -69,27 +71,48 @@ def _side_by_side(images: list[np.ndarray]) -> np.ndarray:
 
 
 def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
-    """Render the built-in phantoms (and Colin27 when available) to PNGs in ``out``."""
+    """Render the built-in phantom (and Colin27 when available) to PNGs in ``out``.
+
+    Side by side, for each volume: emission-absorption, Blinn-Phong, Blinn-Phong
+    with local ambient occlusion; for the head also importance-aware composition
+    revealing the skull through the skin inside a focus region.
+    """
     shape = (image, image)
-    cam = Camera.orbit(azimuth=35, elevation=25, image_shape=shape)
-    jobs = []
+    bg = (0.08, 0.08, 0.1)
     vol = data.phantom("shells", shape=size)
     cut = vol.at[:, :, size // 2:].set(0)
-    bg = (0.08, 0.08, 0.1)
-    for effect in ("none", "phong"):
-        jobs.append(Job(f"shells_{effect}", lambda e=effect: Scene(
-            volume=cut, transfer=transfer.preset("shells"), shading=e, background=bg), cam))
-    head = None
+    cam = Camera.orbit(azimuth=35, elevation=25, image_shape=shape)
+    shells_lao = LocalAmbientOcclusion(size / 8, offset=1.0, directions=16, samples=8)
+    shells = dict(volume=cut, transfer=transfer.preset("shells"), background=bg)
+    jobs = [
+        Job("shells_none", lambda: Scene(**shells), cam),
+        Job("shells_phong", lambda: Scene(**shells, shading="phong"), cam),
+        Job("shells_lao", lambda: Scene(**shells, shading="phong", ambient="lao",
+                                        lao=shells_lao), cam),
+    ]
     try:
         head, spacing = data.load("colin27", downsample=downsample)
     except FileNotFoundError as err:
         print(f"volshade demo: skipping the Colin27 head ({str(err).splitlines()[0]})")
-    if head is not None:
+    else:
         front = Camera.orbit(azimuth=30, elevation=10, image_shape=shape, distance=2.6)
-        for effect in ("none", "phong"):
-            jobs.append(Job(f"colin27_{effect}", lambda e=effect: Scene(
-                volume=head, spacing=spacing, transfer=transfer.preset("head"), shading=e,
-                step=float(min(spacing)) / 2, background=bg), front))
+        voxel = float(min(spacing))
+        common = dict(volume=head, spacing=spacing, step=voxel / 2, background=bg)
+        skin = dict(common, transfer=transfer.preset("head"))
+        # LAO radius and offset are in voxels of the (downsampled) volume: ~12 mm and ~2 mm.
+        head_lao = LocalAmbientOcclusion(12.0 / voxel, offset=2.0 / voxel, directions=16,
+                                         samples=8)
+        skull = Importance(intensity=-30.0, background=-1000.0)
+        jobs += [
+            Job("colin27_none", lambda: Scene(**skin), front),
+            Job("colin27_phong", lambda: Scene(**skin, shading="phong"), front),
+            Job("colin27_lao", lambda: Scene(**skin, shading="phong", ambient="lao",
+                                             lao=head_lao), front),
+            Job("colin27_importance", lambda: Scene(
+                **common, transfer=transfer.preset("head_skull"), shading="phong",
+                composition="importance", importance=skull,
+                focus=Focus(center=(0.45, 0.5), radius=0.22, kind="circular")), front),
+        ]
     t0 = time.perf_counter()
     timings, rendered = _run_jobs(jobs, out)
     for prefix in ("shells", "colin27"):
@@ -136,7 +159,8 @@ def _parser() -> argparse.ArgumentParser:
     p_render.add_argument("--out", type=pathlib.Path, required=True)
     p_render.add_argument("--preset", default="grey", help=f"one of {', '.join(transfer.PRESETS)}")
     p_render.add_argument("--shading", default="phong", choices=list(SHADERS))
-    p_render.add_argument("--ambient", default="none", choices=[a for a in AMBIENT if a != "volume"])
+    p_render.add_argument("--ambient", default="none",
+                          choices=[a for a in AMBIENT if a != "volume"])
     p_render.add_argument("--azimuth", type=float, default=30.0)
     p_render.add_argument("--elevation", type=float, default=20.0)
     p_render.add_argument("--distance", type=float, default=2.5)

@@ -49,9 +49,9 @@ class TransferFunction(eqx.Module):
         0.25
     """
 
-    points: Float[Array, "K"]
+    points: Float[Array, " K"]
     colors: Float[Array, "K 3"]
-    opacities: Float[Array, "K"]
+    opacities: Float[Array, " K"]
     step0: float = eqx.field(static=True, default=1.0)
 
     def __check_init__(self):
@@ -106,7 +106,7 @@ class TransferFunction(eqx.Module):
         return correct_opacity(alpha0, jnp.asarray(step, volume.dtype) / self.step0)
 
     def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
-        r"""Extinction coefficient $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
+        r"""Extinction $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
         volume = jnp.asarray(volume)
         return -log1m(self.opacity(volume)) / self.step0
 
@@ -196,6 +196,16 @@ def _preset_head() -> TransferFunction:
     ])
 
 
+def _preset_head_skull() -> TransferFunction:
+    # The head preset plus the dark T1 band of the skull (0.05-0.12) as a faint bluish
+    # bone layer: hidden under the skin by standard compositing, revealed by importance.
+    return TransferFunction.from_points([
+        (0.0, 0, 0, 0, 0.0), (0.04, 0.9, 0.9, 0.95, 0.0), (0.07, 0.9, 0.9, 0.95, 0.1),
+        (0.1, 0.9, 0.9, 0.95, 0.1), (0.14, 0.93, 0.72, 0.6, 0.02), (0.2, 0.93, 0.72, 0.6, 0.5),
+        (0.45, 0.97, 0.82, 0.72, 0.6), (1.0, 1.0, 0.95, 0.9, 0.85),
+    ])
+
+
 def _preset_corner() -> TransferFunction:
     # Intensities of the corner phantom's walls: 0.5 green, 0.75 blue, 1.0 white.
     return TransferFunction.from_points([
@@ -209,12 +219,16 @@ PRESETS: dict[str, Callable[[], TransferFunction]] = {
     "grey": _preset_grey,
     "shells": _preset_shells,
     "head": _preset_head,
+    "head_skull": _preset_head_skull,
     "corner": _preset_corner,
 }
 
 
 def preset(name: str) -> TransferFunction:
-    """A named transfer function: ``"grey"``, ``"shells"``, ``"head"`` (Colin27), ``"corner"``.
+    """A named transfer function from :data:`PRESETS`.
+
+    ``"grey"``, ``"shells"`` (the shells phantom), ``"head"`` and ``"head_skull"``
+    (Colin27 T1; the latter with the skull band), ``"corner"`` (the corner phantom).
 
     Raises:
         ValueError: unknown name (the message lists the valid ones).

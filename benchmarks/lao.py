@@ -1,0 +1,225 @@
+"""Local ambient occlusion: volshade's gather-free march against a naive gather, same run.
+
+    python -m benchmarks.run lao [--quick]
+
+* Headline: shells phantom (128^3), L = 16 Fibonacci directions, M = 16, R = 16,
+  offset 1: ``volshade.lao`` against the obvious JAX implementation that gathers every
+  sample with ``map_coordinates`` (order 1, zero outside, same sample positions,
+  also ``lax.scan`` over directions and samples, jitted). Trilinear samples per
+  second count ``voxels * L * M`` (eq. 3 needs only ``M - 1`` of them).
+* Scaling: time against work ``voxels * L * M`` over sizes and direction counts,
+  with the fitted exponent (1 = linear).
+* Forward + gradient (w.r.t. opacity and radius) against forward.
+* Memory: XLA's compiled memory analysis of the forward (and forward + gradient) at
+  256^3, as temporary bytes over the bytes of one volume.
+* Bricked empty-space skipping on a sparse volume against the unbricked march.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.scipy.ndimage import map_coordinates
+
+import volshade.directions as vdirs
+from volshade.lao import lao
+
+from ._timing import fit_exponent, time_fn
+
+
+def _shells(n: int) -> jax.Array:
+    """Opacity of the shells phantom: half the density (0.3 / 0.6 / 1.0 shells)."""
+    try:
+        from volshade import data
+
+        density = data.phantom("shells", shape=(n, n, n))
+    except (ImportError, AttributeError):
+        r = np.linalg.norm(np.stack(np.meshgrid(*[np.linspace(-1, 1, n)] * 3,
+                                                indexing="ij")), axis=0)
+        density = np.select([(r > 0.76) & (r <= 0.92), (r > 0.46) & (r <= 0.62),
+                             (r > 0.16) & (r <= 0.32)], [0.3, 0.6, 1.0], 0.0)
+    return jnp.asarray(0.5 * np.asarray(density), jnp.float32)
+
+
+def _sparse(n: int) -> jax.Array:
+    """A mostly empty volume: one dense ball of radius n/10 off the centre."""
+    g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"))
+    centre = np.array([0.3, 0.6, 0.4])[:, None, None, None] * n
+    r = np.linalg.norm(g - centre, axis=0)
+    return jnp.asarray(np.where(r < n / 10, 0.8, 0.0), jnp.float32)
+
+
+def gather_lao(alpha, dirs, radius, offset, samples):
+    """The naive version: every sample gathered with ``map_coordinates``."""
+    step = (radius - offset) / samples
+    grid = jnp.stack(jnp.meshgrid(*[jnp.arange(s, dtype=alpha.dtype) for s in alpha.shape],
+                                  indexing="ij"), axis=-1)
+
+    def per_direction(total, d):
+        def body(carry, i):
+            transmittance, intensity = carry
+            pts = grid + (offset + (i + 0.5) * step) * d
+            a = map_coordinates(alpha, [pts[..., k] for k in range(3)], order=1,
+                                mode="constant", cval=0.0)
+            return (transmittance * (1 - a), intensity + transmittance), None
+
+        init = (jnp.ones_like(alpha), jnp.zeros_like(alpha))
+        (t, intensity), _ = lax.scan(body, init, jnp.arange(samples - 1, dtype=alpha.dtype))
+        return total + (intensity + t) / samples, None
+
+    total, _ = lax.scan(per_direction, jnp.zeros_like(alpha), dirs)
+    return total / dirs.shape[0]
+
+
+def _fast(dirs, samples, **kw):
+    return jax.jit(lambda a, r: lao(a, directions=dirs, radius=r, offset=1.0,
+                                    samples=samples, **kw))
+
+
+def run(quick: bool) -> dict:
+    rows: list[dict] = []
+    ratios: dict[str, float] = {}
+    repeats = 3 if quick else 5
+    n_head, n_dirs, samples, radius = 128, 16, 16, 16.0
+    dirs = vdirs.fibonacci(n_dirs).astype(jnp.float32)
+    r32 = jnp.float32(radius)
+
+    # headline: volshade vs gather, same volume and positions
+    alpha = _shells(n_head)
+    work = alpha.size * n_dirs * samples
+    fast = _fast(dirs, samples, max_radius=radius)
+    naive = jax.jit(lambda a, r: gather_lao(a, dirs, r, jnp.float32(1.0), samples))
+    t_fast = time_fn(fast, alpha, r32, repeats=repeats)
+    t_naive = time_fn(naive, alpha, r32, repeats=repeats)
+    err = float(jnp.max(jnp.abs(fast(alpha, r32) - naive(alpha, r32))))
+    for case, t in (("volshade.lao 128^3 L16 M16", t_fast), ("gather 128^3 L16 M16", t_naive)):
+        rows.append({"case": case, "median_s": t["median_s"], "compile_s": t["first_call_s"],
+                     "Gsamples_per_s": work / t["median_s"] / 1e9})
+    ratios["speedup_vs_gather"] = t_naive["median_s"] / t_fast["median_s"]
+    ratios["max_abs_diff_vs_gather"] = err
+
+    # scaling with voxels * L * M
+    scale_cases = ([(48, 8), (64, 8), (96, 8), (64, 4), (64, 16)] if quick
+                   else [(64, 16), (96, 16), (128, 16), (128, 8), (128, 32)])
+    works, times = [], []
+    for n, n_l in scale_cases:
+        a = _shells(n)
+        f = _fast(vdirs.fibonacci(n_l).astype(jnp.float32), samples, max_radius=radius)
+        t = time_fn(f, a, r32, repeats=repeats)
+        w = a.size * n_l * samples
+        works.append(w)
+        times.append(t["median_s"])
+        rows.append({"case": f"scaling {n}^3 L{n_l} M{samples}", "median_s": t["median_s"],
+                     "compile_s": t["first_call_s"], "Gsamples_per_s": w / t["median_s"] / 1e9})
+    ratios["time_vs_work_exponent"] = fit_exponent(works, times)
+
+    # forward + gradient (w.r.t. opacity and radius) vs forward
+    n_grad = 64 if quick else 128
+    a = _shells(n_grad)
+    fwd = _fast(dirs, samples, max_radius=24.0)
+    loss = lambda a, r: jnp.sum(lao(a, directions=dirs, radius=r, offset=1.0,  # noqa: E731
+                                    samples=samples, max_radius=24.0))
+    both = jax.jit(jax.value_and_grad(loss, (0, 1)))
+    t_f = time_fn(fwd, a, r32, repeats=repeats)
+    t_b = time_fn(both, a, r32, repeats=repeats)
+    rows.append({"case": f"forward {n_grad}^3 L16 M16", "median_s": t_f["median_s"],
+                 "compile_s": t_f["first_call_s"]})
+    rows.append({"case": f"forward+grad(alpha, radius) {n_grad}^3 L16 M16",
+                 "median_s": t_b["median_s"], "compile_s": t_b["first_call_s"]})
+    ratios["forward_plus_grad_over_forward"] = t_b["median_s"] / t_f["median_s"]
+
+    # memory at 256^3 (compile only): temporary bytes / one volume
+    n_mem = 256
+    spec = jax.ShapeDtypeStruct((n_mem,) * 3, jnp.float32)
+    vol_bytes = n_mem**3 * 4
+    for name, fn in (("forward", _fast(dirs, samples, max_radius=radius)),
+                     ("forward+grad", jax.jit(jax.grad(
+                         lambda a, r: jnp.sum(lao(a, directions=dirs, radius=r, offset=1.0,
+                                                  samples=samples, max_radius=radius)),
+                         (0, 1))))):
+        mem = fn.lower(spec, r32).compile().memory_analysis()
+        temp = getattr(mem, "temp_size_in_bytes", float("nan")) if mem is not None else np.nan
+        ratios[f"{name}_temp_bytes_over_volume_256^3"] = float(temp) / vol_bytes
+
+    # bricked empty-space skipping on a sparse volume
+    n_sparse = 96 if quick else 128
+    a = _sparse(n_sparse)
+    r8 = jnp.float32(8.0)
+    plain = _fast(dirs, samples, max_radius=8.0)
+    bricked = _fast(dirs, samples, max_radius=8.0, brick_size=16)
+    t_p = time_fn(plain, a, r8, repeats=repeats)
+    t_k = time_fn(bricked, a, r8, repeats=repeats)
+    same = float(jnp.max(jnp.abs(plain(a, r8) - bricked(a, r8))))
+    rows.append({"case": f"sparse {n_sparse}^3 R8 unbricked", "median_s": t_p["median_s"],
+                 "compile_s": t_p["first_call_s"]})
+    rows.append({"case": f"sparse {n_sparse}^3 R8 bricks of 16", "median_s": t_k["median_s"],
+                 "compile_s": t_k["first_call_s"]})
+    ratios["bricked_speedup_sparse"] = t_p["median_s"] / t_k["median_s"]
+    ratios["bricked_max_abs_diff"] = same
+
+    return {
+        "title": "Local ambient occlusion: gather-free shifted-stencil march vs map_coordinates",
+        "sizes": {"headline": f"{n_head}^3 shells, L={n_dirs}, M={samples}, R={radius}",
+                  "scaling": scale_cases, "grad": f"{n_grad}^3", "memory": f"{n_mem}^3",
+                  "sparse": f"{n_sparse}^3, bricks of 16, R=8"},
+        "rows": rows,
+        "ratios": ratios,
+        "notes": "samples/s count voxels*L*M; gradient w.r.t. alpha and radius; memory from "
+                 "XLA compiled memory_analysis (temp bytes / one float32 volume).",
+    }
+
+
+def _shells_jnp(n: int) -> jax.Array:
+    """The shells opacity computed on the device (for large GPU sizes)."""
+    x = jnp.linspace(-1.0, 1.0, n, dtype=jnp.float32)
+    r = jnp.sqrt(x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)
+    density = jnp.select([(r > 0.76) & (r <= 0.92), (r > 0.46) & (r <= 0.62),
+                          (r > 0.16) & (r <= 0.32)], [0.3, 0.6, 1.0], 0.0)
+    return (0.5 * density).astype(jnp.float32)
+
+
+def run_gpu(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: float = 50.0) -> dict:
+    """The issue's GPU case: 512^3, L = 54, M = 50 (forward, forward + gradient, memory),
+    plus volshade vs the gather at 256^3, L = 16, M = 16 on the same device."""
+    dirs = vdirs.fibonacci(n_dirs).astype(jnp.float32)
+    alpha = _shells_jnp(n)
+    r = jnp.float32(radius)
+    work = alpha.size * n_dirs * samples
+    fwd = _fast(dirs, samples, max_radius=radius)
+    t_f = time_fn(fwd, alpha, r, repeats=3)
+    stats = jax.devices()[0].memory_stats() or {}
+    peak = stats.get("peak_bytes_in_use", float("nan"))
+    loss = lambda a, rr: jnp.sum(lao(a, directions=dirs, radius=rr, offset=1.0,  # noqa: E731
+                                     samples=samples, max_radius=radius))
+    both = jax.jit(jax.value_and_grad(loss, (0, 1)))
+    t_b = time_fn(both, alpha, r, repeats=2)
+    peak_grad = (jax.devices()[0].memory_stats() or {}).get("peak_bytes_in_use", float("nan"))
+    mem_f = fwd.lower(alpha, r).compile().memory_analysis()
+    mem_b = both.lower(alpha, r).compile().memory_analysis()
+    vol = alpha.size * 4
+    rows = [{"case": f"forward {n}^3 L{n_dirs} M{samples} R{radius}", "median_s": t_f["median_s"],
+             "compile_s": t_f["first_call_s"], "Gsamples_per_s": work / t_f["median_s"] / 1e9},
+            {"case": "forward+grad(alpha, radius)", "median_s": t_b["median_s"],
+             "compile_s": t_b["first_call_s"]}]
+    ratios = {"forward_plus_grad_over_forward": t_b["median_s"] / t_f["median_s"],
+              "peak_bytes_after_forward_over_volume": peak / vol,
+              "peak_bytes_after_grad_over_volume": peak_grad / vol,
+              "forward_temp_over_volume": mem_f.temp_size_in_bytes / vol,
+              "grad_temp_over_volume": mem_b.temp_size_in_bytes / vol}
+    small = _shells_jnp(256)
+    d16 = vdirs.fibonacci(16).astype(jnp.float32)
+    r16 = jnp.float32(16.0)
+    fast = _fast(d16, 16, max_radius=16.0)
+    naive = jax.jit(lambda a, rr: gather_lao(a, d16, rr, jnp.float32(1.0), 16))
+    t1 = time_fn(fast, small, r16, repeats=3)
+    t2 = time_fn(naive, small, r16, repeats=3)
+    w16 = small.size * 16 * 16
+    rows += [{"case": "volshade 256^3 L16 M16", "median_s": t1["median_s"],
+              "Gsamples_per_s": w16 / t1["median_s"] / 1e9},
+             {"case": "gather 256^3 L16 M16", "median_s": t2["median_s"],
+              "Gsamples_per_s": w16 / t2["median_s"] / 1e9}]
+    ratios["speedup_vs_gather_256"] = t2["median_s"] / t1["median_s"]
+    ratios["max_abs_diff_vs_gather_256"] = float(jnp.max(jnp.abs(fast(small, r16)
+                                                                  - naive(small, r16))))
+    return {"title": "LAO on GPU", "rows": rows, "ratios": ratios,
+            "device": str(jax.devices()[0])}

@@ -1,0 +1,326 @@
+"""Tests of volshade.lao: reference agreement, analytic values, properties, autodiff, bricks."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import central_difference
+from reference_lao import lao_reference
+
+import volshade.directions as vdirs
+from volshade.lao import LocalAmbientOcclusion, lao
+
+
+def _random_alpha(shape, seed, dtype=jnp.float32, smooth=False):
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0.0, 1.0, shape)
+    if smooth:
+        a = a ** 3
+    return jnp.asarray(a, dtype)
+
+
+def _sparse_alpha(shape, seed, dtype=jnp.float32):
+    """Mostly empty: a few small dense blobs."""
+    rng = np.random.default_rng(seed)
+    a = np.zeros(shape)
+    for _ in range(2):
+        c = [rng.integers(2, s - 3) for s in shape]
+        a[c[0]:c[0] + 3, c[1]:c[1] + 2, c[2]:c[2] + 3] = rng.uniform(0.2, 1.0, (3, 2, 3))
+    return jnp.asarray(a, dtype)
+
+
+# ----------------------------------------------------------------- reference agreement
+
+CASES = [
+    # shape, directions, radius, offset, samples, correction, weighted
+    ((16, 16, 16), vdirs.fibonacci(7), 5.3, 1.0, 6, False, False),
+    ((18, 16, 17), vdirs.icosphere(0), 9.7, 0.4, 9, True, False),
+    ((16, 17, 16), vdirs.random_polar(5, key=jax.random.key(3)), 3.0, 0.0, 4, False, True),
+    ((16, 16, 16), vdirs.fibonacci(3), 21.0, 2.5, 5, True, True),  # rays leave the volume
+]
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_matches_gather_reference_float32(case):
+    shape, dirs, radius, offset, samples, corr, weighted = CASES[case]
+    alpha = _random_alpha(shape, case)
+    weights = None
+    if weighted:
+        weights = jnp.asarray(np.random.default_rng(case).uniform(0.1, 2.0, dirs.shape[0]),
+                              jnp.float32)
+    out = jax.jit(lambda a: lao(a, directions=dirs.astype(jnp.float32), radius=radius,
+                                offset=offset, samples=samples, weights=weights,
+                                opacity_correction=corr))(alpha)
+    ref = lao_reference(alpha, dirs, np.float32(radius), np.float32(offset), samples,
+                        weights=weights, opacity_correction=corr)
+    assert out.dtype == jnp.float32 and out.shape == shape
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=0, atol=1e-6)
+    assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+
+
+def test_matches_gather_reference_float64():
+    alpha = _random_alpha((16, 16, 16), 7, jnp.float64)
+    dirs = vdirs.fibonacci(6)
+    out = lao(alpha, directions=dirs, radius=6.1, offset=0.7, samples=7, opacity_correction=True)
+    ref = lao_reference(alpha, dirs, 6.1, 0.7, 7, opacity_correction=True)
+    assert out.dtype == jnp.float64
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=0, atol=1e-12)
+
+
+def test_bounded_padding_equals_full_padding():
+    alpha = _random_alpha((16, 16, 16), 11)
+    kw = dict(directions=vdirs.fibonacci(5), offset=1.0, samples=6)
+    traced = jax.jit(lambda r: lao(alpha, radius=r, **kw))(jnp.float32(7.5))
+    bounded = jax.jit(lambda r: lao(alpha, radius=r, max_radius=8.0, **kw))(jnp.float32(7.5))
+    concrete = lao(alpha, radius=7.5, **kw)
+    np.testing.assert_allclose(np.asarray(traced), np.asarray(bounded), rtol=0, atol=2e-7)
+    np.testing.assert_allclose(np.asarray(traced), np.asarray(concrete), rtol=0, atol=2e-7)
+
+
+# ----------------------------------------------------------------- analytic values
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("brick_size", [None, 4])
+def test_empty_volume_is_exactly_one(dtype, brick_size):
+    ao = lao(jnp.zeros((16, 16, 16), dtype), directions=vdirs.icosphere(1), radius=6.0,
+             samples=8, weights=jnp.linspace(0.1, 3.0, 42), brick_size=brick_size,
+             opacity_correction=True)
+    assert ao.dtype == dtype
+    assert bool(jnp.all(ao == 1))
+
+
+def test_fully_opaque_centre():
+    # every sample of the centre voxel lies inside the volume, where alpha = 1:
+    # the first sample stops the ray, I = 1/M for every direction.
+    alpha = jnp.ones((24, 24, 24), jnp.float64)
+    for corr in (False, True):
+        ao = lao(alpha, directions=vdirs.icosphere(1), radius=8.0, offset=0.5, samples=8,
+                 opacity_correction=corr)
+        np.testing.assert_allclose(float(ao[12, 12, 12]), 1 / 8, rtol=1e-13)
+
+
+@pytest.mark.parametrize("corr", [False, True])
+def test_uniform_medium_centre(corr):
+    # constant opacity c everywhere the samples reach: I = (1/M) sum_m (1-c')^m
+    # = (1 - (1-c')^M) / (M c'), with c' = 1 - (1-c)^(dR/M) when corrected.
+    c, radius, offset, m = 0.3, 7.0, 1.5, 6
+    alpha = jnp.full((24, 24, 24), c, jnp.float64)
+    ao = lao(alpha, directions=vdirs.fibonacci(9), radius=radius, offset=offset, samples=m,
+             opacity_correction=corr)
+    cp = 1 - (1 - c) ** ((radius - offset) / m) if corr else c
+    expected = (1 - (1 - cp) ** m) / (m * cp)
+    np.testing.assert_allclose(float(ao[12, 12, 12]), expected, rtol=1e-12)
+
+
+def test_single_sample_gives_one():
+    ao = lao(_random_alpha((16, 16, 16), 1), directions=4, radius=4.0, samples=1)
+    assert bool(jnp.all(ao == 1))
+
+
+def test_int_directions_mean_fibonacci():
+    alpha = _random_alpha((16, 16, 16), 2)
+    a = lao(alpha, directions=10, radius=5.0, samples=5)
+    b = lao(alpha, directions=vdirs.fibonacci(10).astype(jnp.float32), radius=5.0, samples=5)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-7)
+
+
+def test_uniform_weights_equal_no_weights_and_scale_invariant():
+    alpha = _random_alpha((16, 16, 16), 3, jnp.float64)
+    kw = dict(directions=vdirs.fibonacci(6), radius=5.0, samples=5)
+    a = lao(alpha, **kw)
+    b = lao(alpha, weights=jnp.full(6, 7.0), **kw)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-14)
+    w = jnp.asarray([1.0, 0, 0, 0, 0, 0])
+    single = lao(alpha, directions=vdirs.fibonacci(6)[:1], radius=5.0, samples=5)
+    np.testing.assert_allclose(np.asarray(lao(alpha, weights=w, **kw)), np.asarray(single),
+                               atol=1e-14)
+
+
+# ----------------------------------------------------------------- properties
+
+
+def test_monotone_in_opacity():
+    alpha = _random_alpha((16, 16, 16), 4, jnp.float64) * 0.5
+    dirs = vdirs.fibonacci(8)
+    kw = dict(directions=dirs, radius=6.0, offset=1.0, samples=6)
+    base = lao(alpha, **kw)
+    # the voxel nearest to the first sample of the centre's first ray
+    s0 = 1.0 + 0.5 * 5.0 / 6
+    target = tuple(int(v) for v in np.round(np.array([8, 8, 8]) + s0 * np.asarray(dirs[0])))
+    bumped = lao(alpha.at[target].add(0.4), **kw)
+    assert bool(jnp.all(bumped <= base + 1e-15))
+    assert float(bumped[8, 8, 8]) < float(base[8, 8, 8]) - 1e-6
+
+
+def test_tends_to_one_as_radius_tends_to_offset_with_correction():
+    alpha = _random_alpha((16, 16, 16), 5, jnp.float64) * 0.9
+    kw = dict(directions=vdirs.fibonacci(8), offset=2.0, samples=8, opacity_correction=True)
+    gaps = [float(jnp.max(1 - lao(alpha, radius=2.0 + eps, **kw))) for eps in (1.0, 1e-2, 1e-4)]
+    assert gaps[0] > gaps[1] > gaps[2] >= 0
+    assert gaps[2] < 1e-4
+
+
+# ----------------------------------------------------------------- transformations
+
+
+def test_jit_equals_eager_and_vmap():
+    alphas = jnp.stack([_random_alpha((16, 16, 16), s) for s in range(3)])
+    kw = dict(directions=vdirs.fibonacci(4), offset=1.0, samples=5)
+    f = lambda a, r: lao(a, radius=r, max_radius=8.0, **kw)  # noqa: E731
+    r = jnp.float32(6.0)
+    eager = [f(a, r) for a in alphas]
+    jitted = jax.jit(f)(alphas[0], r)
+    np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager[0]), atol=1e-7)
+    batched = jax.jit(jax.vmap(f, in_axes=(0, None)))(alphas, r)
+    np.testing.assert_allclose(np.asarray(batched), np.asarray(jnp.stack(eager)), atol=1e-7)
+    radii = jnp.asarray([3.0, 5.5, 7.9], jnp.float32)
+    over_radii = jax.jit(jax.vmap(f, in_axes=(None, 0)))(alphas[0], radii)
+    stacked = jnp.stack([f(alphas[0], rr) for rr in radii])
+    np.testing.assert_allclose(np.asarray(over_radii), np.asarray(stacked), atol=1e-7)
+
+
+def test_module_matches_function_and_differentiates():
+    alpha = _random_alpha((12, 12, 12), 6, jnp.float64)
+    params = LocalAmbientOcclusion(5.0, offset=0.5, directions=3, samples=2, max_radius=6.0)
+    direct = lao(alpha, directions=vdirs.fibonacci(3), radius=jnp.asarray(5.0),
+                 offset=jnp.asarray(0.5), samples=2, max_radius=6.0)
+    np.testing.assert_allclose(np.asarray(params(alpha)), np.asarray(direct), atol=1e-14)
+    grads = eqx.filter_jit(eqx.filter_grad(lambda p: jnp.sum(p(alpha))))(params)
+    assert np.isfinite(float(grads.radius)) and np.isfinite(float(grads.offset))
+    assert float(grads.radius) != 0
+
+
+# One compiled loss and one compiled gradient (w.r.t. alpha, radius and offset) per
+# correction setting, shared by the gradient tests below: shapes (10, 10, 10) and (3, 3).
+_FD_SHAPE = (10, 10, 10)
+_FD_WEIGHTS = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, _FD_SHAPE))
+
+
+def _loss(alpha, radius, offset, dirs, corr):
+    ao = lao(alpha, directions=dirs, radius=radius, offset=offset, samples=4,
+             opacity_correction=corr, max_radius=9.0)
+    return jnp.sum(_FD_WEIGHTS * ao ** 2)
+
+
+_loss_jit = jax.jit(_loss, static_argnums=4)
+_grad_jit = jax.jit(jax.grad(_loss, (0, 1, 2)), static_argnums=4)
+
+
+@pytest.mark.parametrize("corr", [False, True])
+def test_grads_vs_finite_differences(corr):
+    alpha = 0.05 + 0.85 * _random_alpha(_FD_SHAPE, 8, jnp.float64, smooth=True)
+    dirs = vdirs.fibonacci(3)
+    radius, offset = jnp.float64(5.37), jnp.float64(0.83)
+    g_alpha, g_r, g_a = _grad_jit(alpha, radius, offset, dirs, corr)
+    fd_r = central_difference(lambda r: _loss_jit(alpha, r, offset, dirs, corr), radius, 1.0)
+    fd_a = central_difference(lambda a: _loss_jit(alpha, radius, a, dirs, corr), offset, 1.0)
+    assert abs(float(g_r) - float(fd_r)) <= 1e-4 * abs(float(fd_r))
+    assert abs(float(g_a) - float(fd_a)) <= 1e-4 * abs(float(fd_a))
+    rng = np.random.default_rng(1)
+    for _ in range(2):
+        v = jnp.asarray(rng.standard_normal(_FD_SHAPE))
+        v = v / jnp.linalg.norm(v)
+        fd = float(central_difference(lambda a: _loss_jit(a, radius, offset, dirs, corr),
+                                      alpha, v))
+        assert abs(float(jnp.vdot(g_alpha, v)) - fd) <= 1e-4 * abs(fd)
+
+
+def test_grads_finite_at_voxel_boundary_crossing():
+    # axis-aligned rays, offset 0, M = 4, R = 8: the samples sit at s = 1, 3, 5, exactly
+    # on voxel centre planes (kinks of the trilinear weights).
+    dirs = jnp.eye(3)
+    radius, offset = jnp.float64(8.0), jnp.float64(0.0)
+    edge_volumes = (_random_alpha(_FD_SHAPE, 10, jnp.float64), jnp.ones(_FD_SHAPE),
+                    jnp.zeros(_FD_SHAPE), jnp.zeros(_FD_SHAPE).at[0, 0, 9].set(1.0))
+    for alpha in edge_volumes:
+        for g in _grad_jit(alpha, radius, offset, dirs, False):
+            assert bool(jnp.all(jnp.isfinite(g)))
+    # the derivative at the kink lies between the two one-sided differences
+    alpha = edge_volumes[0]
+    g_r = float(_grad_jit(alpha, radius, offset, dirs, False)[1])
+    h = 1e-6
+    at = float(_loss_jit(alpha, radius, offset, dirs, False))
+    left = (at - float(_loss_jit(alpha, radius - h, offset, dirs, False))) / h
+    right = (float(_loss_jit(alpha, radius + h, offset, dirs, False)) - at) / h
+    assert abs(left - right) > 1e-3  # a real kink
+    assert min(left, right) - 1e-4 <= g_r <= max(left, right) + 1e-4
+
+
+# ----------------------------------------------------------------- bricks
+
+
+@pytest.mark.parametrize("brick_size", [4, 5])
+def test_bricked_equals_unbricked(brick_size):
+    alpha = _sparse_alpha((20, 18, 16), 12)
+    kw = dict(directions=vdirs.fibonacci(6).astype(jnp.float32), radius=4.5, offset=0.5,
+              samples=5, opacity_correction=True)
+    full = jax.jit(lambda a: lao(a, **kw))(alpha)
+    bricked = jax.jit(lambda a: lao(a, brick_size=brick_size, **kw))(alpha)
+    np.testing.assert_allclose(np.asarray(bricked), np.asarray(full), rtol=0, atol=1e-7)
+    assert float(full.min()) < 0.9  # something was occluded
+
+
+def test_bricked_gradients_and_vmap():
+    alpha = _sparse_alpha((12, 12, 12), 13, jnp.float64)
+    dirs = vdirs.fibonacci(3)
+
+    def f(a, r, brick):
+        return jnp.sum(lao(a, directions=dirs, radius=r, samples=2, max_radius=5.0,
+                           brick_size=brick) ** 2)
+
+    g_full = jax.jit(jax.grad(f, (0, 1)), static_argnums=2)(alpha, 4.2, None)
+    g_brick = jax.jit(jax.grad(f, (0, 1)), static_argnums=2)(alpha, 4.2, 4)
+    np.testing.assert_allclose(np.asarray(g_brick[0]), np.asarray(g_full[0]), atol=1e-12)
+    np.testing.assert_allclose(float(g_brick[1]), float(g_full[1]), rtol=1e-12)
+    batch = jnp.stack([alpha, _sparse_alpha((12, 12, 12), 14, jnp.float64)])
+    out = jax.jit(jax.vmap(lambda a: lao(a, directions=dirs, radius=4.2, samples=2,
+                                         brick_size=4)))(batch)
+    ref = jnp.stack([lao(a, directions=dirs, radius=4.2, samples=2) for a in batch])
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=1e-12)
+
+
+# ----------------------------------------------------------------- errors
+
+
+def test_bad_inputs_raise_clear_errors():
+    alpha = jnp.zeros((8, 8, 8), jnp.float32)
+    dirs = vdirs.fibonacci(4)
+    with pytest.raises(ValueError, match="radius.*offset"):
+        lao(alpha, directions=dirs, radius=1.0, offset=1.0)
+    with pytest.raises(ValueError, match="samples"):
+        lao(alpha, directions=dirs, radius=4.0, samples=0)
+    with pytest.raises(ValueError, match="empty"):
+        lao(alpha, directions=jnp.zeros((0, 3)), radius=4.0)
+    with pytest.raises(ValueError, match=r"\(L, 3\)"):
+        lao(alpha, directions=jnp.ones((4, 2)), radius=4.0)
+    with pytest.raises(ValueError, match="directions"):
+        lao(alpha, directions=0, radius=4.0)
+    with pytest.raises(ValueError, match="3 dimensions"):
+        lao(alpha[0], directions=dirs, radius=4.0)
+    with pytest.raises(ValueError, match="weights"):
+        lao(alpha, directions=dirs, radius=4.0, weights=jnp.ones(3))
+    with pytest.raises(ValueError, match="offset"):
+        lao(alpha, directions=dirs, radius=4.0, offset=-1.0)
+    with pytest.raises(ValueError, match="max_radius"):
+        lao(alpha, directions=dirs, radius=4.0, max_radius=3.0)
+    with pytest.raises(ValueError, match="brick_size"):
+        lao(alpha, directions=dirs, radius=4.0, brick_size=0)
+
+
+def test_bad_values_raise_under_jit():
+    alpha = jnp.full((8, 8, 8), 0.5, jnp.float32)
+    dirs = vdirs.fibonacci(4)
+    f = jax.jit(lambda a, r, o: lao(a, directions=dirs, radius=r, offset=o, max_radius=8.0))
+    with pytest.raises(Exception, match="radius"):
+        jax.block_until_ready(f(alpha, 1.0, 2.0))
+    with pytest.raises(Exception, match=r"\[0, 1\]"):
+        jax.block_until_ready(f(alpha.at[0, 0, 0].set(1.5), 4.0, 1.0))
+    with pytest.raises(Exception, match="NaN"):
+        jax.block_until_ready(f(alpha.at[0, 0, 0].set(jnp.nan), 4.0, 1.0))
+    with pytest.raises(Exception, match="max_radius"):
+        jax.block_until_ready(f(alpha, 9.0, 1.0))
+    g = jax.jit(lambda w: lao(alpha, directions=dirs, radius=3.0, weights=w))
+    with pytest.raises(Exception, match="weights"):
+        jax.block_until_ready(g(jnp.asarray([1.0, -1.0, 0.0, 0.0])))
