@@ -25,7 +25,7 @@ import sys
 
 import jax
 
-BENCHMARKS = ("render", "lao", "obscurance", "composition")
+BENCHMARKS = ("render", "lao", "obscurance", "composition", "gpu")
 
 
 def _format_table(rows: list[dict]) -> str:

@@ -1,0 +1,131 @@
+"""The GPU goals of the issues, and GPU-against-CPU agreement, in one run.
+
+    python -m benchmarks.run gpu [--quick]
+
+Needs a GPU (the CPU backend of the same process computes the agreement
+references). Cases:
+
+* agreement: small render (Phong + LAO ambient + importance composition), LAO,
+  colour-bleeding obscurance, saliency and importance compositing, each computed on
+  the GPU and on the CPU in this process; max |GPU - CPU| in float32;
+* LAO (issue 3): 512^3, L = 54, M = 50, R = 50: trilinear samples per second, forward
+  and forward + gradient w.r.t. opacity and radius (``benchmarks.lao.run_gpu``);
+* obscurance (issue 4): 256^3, 162 directions, d_max 64 (goal <= 0.25 s on an H100);
+* composition (issue 5): 512^2 rays x 512 samples, standard and importance-aware,
+  forward (goal <= 10 ms on an H100) and forward + gradient, scan unrolled 1 and 8;
+* rendering: a 512^2 image over the 256^3 shells phantom.
+"""
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import volshade as vs
+from volshade.composition import composite
+from volshade.directions import icosphere
+from volshade.importance import Focus, Importance
+from volshade.lao import LocalAmbientOcclusion, lao
+from volshade.obscurance import obscurance
+from volshade.render import n_samples
+from volshade.saliency import saliency
+
+from ._timing import time_fn
+
+
+def _agreement() -> list[dict]:
+    rng = np.random.default_rng(0)
+    alpha = jnp.asarray(rng.random((32, 32, 32)) ** 4, jnp.float32)
+    head = vs.data.phantom("shells", shape=48)
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(64, 64))
+    scene = vs.Scene(volume=head, transfer=vs.transfer.preset("shells"), shading="phong",
+                     ambient="lao", lao=LocalAmbientOcclusion(6.0, directions=16, samples=8),
+                     composition="importance", importance=Importance(intensity=3.0),
+                     focus=Focus(radius=0.3))
+    c = jnp.asarray(rng.random((1000, 64, 3)), jnp.float32)
+    a = jnp.asarray(rng.random((1000, 64)) ** 3, jnp.float32)
+    i = jnp.asarray(rng.normal(size=(1000, 64)) * 20, jnp.float32)
+    cases = {
+        "render phong+lao+importance 48^3 -> 64^2": lambda: eqx.filter_jit(vs.render)(scene, cam),
+        "lao 32^3 L16 M8": lambda: lao(alpha, directions=16, radius=6.0, samples=8),
+        "obscurance+bleeding 32^3 42 dirs": lambda: obscurance(
+            alpha, directions=icosphere(1), d_max=16.0,
+            colors=jnp.stack([alpha, 1 - alpha, alpha**2], -1)),
+        "saliency 32^3": lambda: saliency(obscurance(alpha, directions=icosphere(0), d_max=8.0)),
+        "composite importance 1000x64": lambda: composite(c * a[..., None], a, importance=i),
+    }
+    rows = []
+    for name, fn in cases.items():
+        with jax.default_device(jax.devices("cpu")[0]):
+            ref = np.asarray(fn())
+        got = np.asarray(fn())
+        rows.append({"case": f"agree: {name}", "median_s": float("nan"),
+                     "max_abs_gpu_minus_cpu": float(np.max(np.abs(got - ref)))})
+    return rows
+
+
+def run(quick: bool) -> dict:
+    if jax.default_backend() == "cpu":
+        raise SystemExit("benchmarks.run gpu needs a GPU (jax.default_backend() is 'cpu').")
+    rows = _agreement()
+    ratios = {}
+    t0 = time.perf_counter()
+
+    # Obscurance: 256^3, 162 directions, d_max 64.
+    n = 128 if quick else 256
+    density = 0.5 * vs.data.phantom("shells", shape=n)
+    obs = jax.jit(lambda d, dm: obscurance(d, directions=icosphere(2), d_max=dm))
+    t = time_fn(obs, density, jnp.float32(64.0), repeats=3)
+    rows.append({"case": f"obscurance {n}^3 162 dirs d_max 64", "median_s": t["median_s"],
+                 "compile_s": t["first_call_s"] - t["median_s"]})
+
+    # Composition: 512^2 rays x 512 samples.
+    side, samples = (256, 256) if quick else (512, 512)
+    key = jax.random.split(jax.random.PRNGKey(0), 3)
+    alphas = jax.random.uniform(key[0], (side * side, samples), jnp.float32, 0.0, 0.05)
+    colors = jax.random.uniform(key[1], (side * side, samples, 3), jnp.float32) * alphas[..., None]
+    imps = 4.0 * jax.random.normal(key[2], (side * side, samples), jnp.float32)
+    med = {}
+    for unroll in (1, 8):
+        for name, kw in (("standard", {}), ("importance", {"importance": imps})):
+            fwd = jax.jit(lambda c, a, kw=kw, u=unroll: composite(c, a, unroll=u, **kw))
+            t = time_fn(fwd, colors, alphas, repeats=5)
+            med[(name, "fwd", unroll)] = t["median_s"]
+            rows.append({"case": f"composite {name} {side}^2x{samples} unroll {unroll}",
+                         "median_s": t["median_s"],
+                         "Gsamples_per_s": side * side * samples / t["median_s"] / 1e9})
+            grad = jax.jit(jax.grad(lambda c, a, kw=kw, u=unroll: jnp.sum(
+                composite(c, a, unroll=u, **kw)), argnums=(0, 1)))
+            t = time_fn(grad, colors, alphas, repeats=3)
+            med[(name, "grad", unroll)] = t["median_s"]
+            rows.append({"case": f"composite {name} fwd+grad unroll {unroll}",
+                         "median_s": t["median_s"]})
+    for u in (1, 8):
+        ratios[f"composite importance/standard forward (unroll {u})"] = (
+            med[("importance", "fwd", u)] / med[("standard", "fwd", u)])
+        ratios[f"composite importance/standard fwd+grad (unroll {u})"] = (
+            med[("importance", "grad", u)] / med[("standard", "grad", u)])
+
+    # Rendering: 512^2 over 256^3 (quick: 256^2 over 128^3).
+    n, px = (128, 256) if quick else (256, 512)
+    vol = vs.data.phantom("shells", shape=n)
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(px, px))
+    for shading in ("none", "phong"):
+        scene = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading=shading,
+                         step=1.0)
+        t = time_fn(eqx.filter_jit(vs.render), scene, cam, repeats=3)
+        work = px * px * n_samples(vol.shape, (1, 1, 1), 1.0)
+        rows.append({"case": f"render {px}^2 over {n}^3, shading={shading}",
+                     "median_s": t["median_s"], "Gsamples_per_s": work / t["median_s"] / 1e9})
+    rows.append({"case": "(elapsed before LAO)", "median_s": time.perf_counter() - t0})
+
+    # LAO last: the largest case.
+    from .lao import run_gpu
+
+    lao_result = run_gpu(n=256 if quick else 512)
+    rows += lao_result["rows"]
+    ratios.update({f"lao {k}": v for k, v in lao_result["ratios"].items()})
+    return {"title": "GPU goals and GPU/CPU agreement", "sizes": {"quick": quick},
+            "rows": rows, "ratios": ratios}
