@@ -76,7 +76,8 @@ def run(quick: bool) -> dict:
     # Obscurance: 256^3, 162 directions, d_max 64.
     n = 128 if quick else 256
     density = 0.5 * vs.data.phantom("shells", shape=n)
-    obs = jax.jit(lambda d, dm: obscurance(d, directions=icosphere(2), d_max=dm))
+    dirs162 = icosphere(2)  # concrete: the directions set the sweep, close over them
+    obs = jax.jit(lambda d, dm: obscurance(d, directions=dirs162, d_max=dm))
     t = time_fn(obs, density, jnp.float32(64.0), repeats=3)
     rows.append({"case": f"obscurance {n}^3 162 dirs d_max 64", "median_s": t["median_s"],
                  "compile_s": t["first_call_s"] - t["median_s"]})

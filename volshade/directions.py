@@ -5,6 +5,8 @@ All functions return a ``(L, 3)`` array of unit vectors in volume axis order
 the number of directions sets array shapes, so choose the set outside ``jit``.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -62,21 +64,15 @@ def _icosahedron() -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     return verts / np.linalg.norm(verts, axis=1, keepdims=True), faces
 
 
-def icosphere(level: int) -> Float[Array, "n 3"]:
-    """Vertices of a subdivided icosahedron: 12, 42, 162, 642 directions for level 0-3.
-
-    Each level splits every triangle into four and projects the new vertices
-    onto the sphere; the count is ``10 * 4**level + 2``. These are the direction
-    sets of the obscurance paper (Ruiz et al. 2008, section 3.1).
-
-    Example:
-        >>> icosphere(1).shape
-        (42, 3)
-    """
-    where = "volshade.directions.icosphere"
+def _check_level(level: int, where: str) -> int:
     level = _checks.positive_int(level, "level", where, minimum=0)
     if level > 4:
         raise ValueError(f"{where}: `level` must be <= 4 (2562 directions), got {level}.")
+    return level
+
+
+@functools.lru_cache(maxsize=8)
+def _subdivided_icosahedron(level: int) -> np.ndarray:
     verts, faces = _icosahedron()
     points = list(verts)
     for _ in range(level):
@@ -95,4 +91,30 @@ def icosphere(level: int) -> Float[Array, "n 3"]:
             ab, bc, ca = middle(a, b), middle(b, c), middle(c, a)
             new_faces += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
         faces = new_faces
-    return jnp.asarray(np.stack(points), dtype=float)
+    out = np.stack(points)
+    out.setflags(write=False)
+    return out
+
+
+def icosphere(level: int) -> Float[Array, "n 3"]:
+    """Vertices of a subdivided icosahedron: 12, 42, 162, 642 directions for level 0-3.
+
+    Each level splits every triangle into four and projects the new vertices
+    onto the sphere; the count is ``10 * 4**level + 2``. These are the direction
+    sets of the obscurance paper (Ruiz et al. 2008, section 3.1).
+
+    Example:
+        >>> icosphere(1).shape
+        (42, 3)
+    """
+    level = _check_level(level, "volshade.directions.icosphere")
+    return jnp.asarray(_subdivided_icosahedron(level), dtype=float)
+
+
+def icosphere_points(level: int) -> np.ndarray:
+    """:func:`icosphere` as a read-only float64 NumPy array.
+
+    NumPy values stay concrete inside ``jax.jit`` (where ``jnp`` constants may be
+    traced), which kernels need whose sweeps the directions define (obscurances).
+    """
+    return _subdivided_icosahedron(_check_level(level, "volshade.directions.icosphere_points"))

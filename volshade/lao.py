@@ -554,8 +554,11 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
 class LocalAmbientOcclusion(eqx.Module):
     """Parameters of :func:`lao`, as a Module: ``radius``, ``offset`` (and ``weights``)
     are array leaves a fit can change; counts and switches are static. Under
-    ``eqx.filter_jit`` the radius is traced, so set ``max_radius`` to bound the padding
-    (see :func:`lao`). ``directions`` is an array leaf but is not differentiated.
+    ``eqx.filter_jit`` the radius is traced, so the padding is bounded by the static
+    ``max_radius`` (see :func:`lao`), by default twice the radius given here: a fit
+    can grow the radius up to that without recompiling, and beyond it gets a clear
+    error asking for a larger ``max_radius``. ``directions`` is an array leaf but is
+    not differentiated.
 
     Example:
         >>> params = LocalAmbientOcclusion(8.0, directions=42, samples=16, max_radius=12.0)
@@ -585,6 +588,8 @@ class LocalAmbientOcclusion(eqx.Module):
         self.samples = _checks.positive_int(samples, "samples", "volshade.LocalAmbientOcclusion")
         self.opacity_correction = bool(opacity_correction)
         self.brick_size = brick_size
+        if max_radius is None and not isinstance(radius, jax.core.Tracer):
+            max_radius = 2 * float(np.max(np.asarray(radius)))
         self.max_radius = max_radius
 
     def __call__(self, alpha: Volume) -> Volume:

@@ -70,7 +70,7 @@ import numpy as np
 from . import _checks
 from ._numerics import safe_div, safe_normalize, safe_pow, safe_sqrt
 from ._types import Array, ArrayLike, Float
-from .directions import icosphere
+from .directions import icosphere_points
 
 __all__ = [
     "RHO_FUNCTIONS",
@@ -661,6 +661,6 @@ class ObscuranceParams(eqx.Module):
         or ``(D, H, W, 3)`` with colour bleeding."""
         density = transfer.opacity(volume) if self.density == "opacity" else volume
         colors = transfer.color(volume) if self.color_bleeding else None
-        obs = obscurance(density, directions=icosphere(self.level), d_max=self.d_max,
+        obs = obscurance(density, directions=icosphere_points(self.level), d_max=self.d_max,
                          rho=self.rho, colors=colors)
         return threshold(obs, self.low, self.high)

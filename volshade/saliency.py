@@ -37,7 +37,7 @@ import numpy as np
 from . import _checks
 from ._numerics import correct_opacity, safe_div, safe_sqrt
 from ._types import Array, ArrayLike, Float
-from .directions import icosphere
+from .directions import icosphere_points
 from .gradient import regression_gradient
 from .obscurance import (
     _direction_array,
@@ -418,7 +418,7 @@ class SaliencyModulation(eqx.Module):
 
     def __call__(self, volume: Float[Array, "D H W"], transfer) -> Float[Array, "D H W"]:
         """The opacity factor volume for ``volume`` classified by ``transfer``."""
-        obs = obscurance(transfer.opacity(volume), directions=icosphere(self.level),
+        obs = obscurance(transfer.opacity(volume), directions=icosphere_points(self.level),
                          d_max=self.d_max, rho=self.rho)
         return opacity_factor(saliency(obs, size=self.size), threshold=self.threshold,
                               multiply=self.multiply, boost_top=self.boost_top)
