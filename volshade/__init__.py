@@ -1,4 +1,9 @@
-"""volshade: differentiable volume shading for direct volume rendering, in JAX."""
+"""volshade: differentiable volume shading for direct volume rendering, in JAX.
+
+The public API. Submodules hold the details (``volshade.data``, ``volshade.transfer``,
+``volshade.directions``, ``volshade.gradient``, ``volshade.sampling``); the kernels
+and parameter modules are re-exported here.
+"""
 
 from . import data as data
 from . import directions as directions
@@ -8,7 +13,25 @@ from . import transfer as transfer
 from .camera import Camera as Camera
 from .composition import composite as composite
 from .gradient import regression_gradient as regression_gradient
+from .importance import Focus as Focus
+from .importance import Importance as Importance
+from .importance import focus_weights as focus_weights
+from .importance import sample_importance as sample_importance
+from .lao import LocalAmbientOcclusion as LocalAmbientOcclusion
+from .lao import lao as lao
+from .obscurance import ObscuranceParams as ObscuranceParams
+from .obscurance import obscurance as obscurance
+from .obscurance import obscurance_shading as obscurance_shading
+from .obscurance import occluder_distances as occluder_distances
+from .obscurance import threshold as threshold
 from .render import save_png as save_png
+from .saliency import SaliencyModulation as SaliencyModulation
+from .saliency import least_salient_view as least_salient_view
+from .saliency import modulate_opacity as modulate_opacity
+from .saliency import most_salient_view as most_salient_view
+from .saliency import projected_area as projected_area
+from .saliency import saliency as saliency
+from .saliency import viewpoint_saliency as viewpoint_saliency
 from .scene import Scene as Scene
 from .scene import render as render
 from .shading import Phong as Phong

@@ -257,20 +257,19 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
         def chunk_bwd(state, chunk):
             start, dists, valids, coefs = chunk
 
-            def t_step(transmittance, sample):
+            def read(transmittance, sample):
                 distance, is_valid = sample
-                alpha = _sample_opacity(source, pad, shape, distance * direction, step,
-                                        correction)
-                return transmittance * (1 - is_valid * alpha), transmittance
+                alpha, slope = _trilinear_shifted_with_slope(source, pad, shape,
+                                                             distance * direction, direction)
+                corrected = correct_opacity(alpha, step) if correction else alpha
+                return transmittance * (1 - is_valid * corrected), (transmittance, alpha, slope)
 
-            _, transmittances = lax.scan(t_step, start, (dists, valids))
+            _, (transmittances, alphas, slopes) = lax.scan(read, start, (dists, valids),
+                                                           unroll=True)
 
             def sample_bwd(state, sample):
                 suffix_next, d_source, acc_slope, acc_radius = state
-                transmittance, distance, is_valid, coef = sample
-                offset_vec = distance * direction
-                alpha, slope = _trilinear_shifted_with_slope(source, pad, shape, offset_vec,
-                                                             direction)
+                transmittance, alpha, slope, distance, is_valid, coef = sample
                 suffix = is_valid + suffix_next
                 g_corrected = ct * is_valid * transmittance * suffix
                 if correction:
@@ -283,11 +282,13 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
                 g_slope = g_alpha * slope
                 acc_slope = acc_slope + g_slope
                 acc_radius = acc_radius + coef * g_slope
-                d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad, offset_vec)
+                d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad,
+                                                          distance * direction)
                 suffix_next = (1 - is_valid * corrected) * suffix
                 return (suffix_next, d_source, acc_slope, acc_radius), None
 
-            state, _ = lax.scan(sample_bwd, state, (transmittances, dists, valids, coefs),
+            state, _ = lax.scan(sample_bwd, state,
+                                (transmittances, alphas, slopes, dists, valids, coefs),
                                 reverse=True)
             return state, None
 
