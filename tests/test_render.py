@@ -3,8 +3,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from helpers import check_grad_fd
+
 from volshade.camera import Camera, box_half_extent, intersect_box
 from volshade.render import march, n_samples, save_png
 from volshade.transfer import TransferFunction, preset
@@ -54,7 +54,8 @@ def test_uniform_slab_matches_beer_lambert(step):
     assert hit.sum() > 0 and (~hit).sum() > 0
     expected_alpha = 1 - np.exp(-tau * shape[1] * spacing[1])
     np.testing.assert_allclose(np.asarray(img[..., 3])[hit], expected_alpha, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(img[..., :3])[hit], np.broadcast_to(expected_alpha * color, (hit.sum(), 3)), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(img[..., :3])[hit],
+                               np.broadcast_to(expected_alpha * color, (hit.sum(), 3)), atol=1e-5)
     np.testing.assert_array_equal(np.asarray(img[..., 3])[~hit], 0)
 
 
@@ -90,7 +91,8 @@ def test_gradient_wrt_transfer_function_matches_finite_differences():
     def loss_of(field):
         @jax.jit
         def loss(values):
-            t = eqx.tree_at(lambda t: getattr(t, field), tf, values.reshape(getattr(tf, field).shape))
+            shape = getattr(tf, field).shape
+            t = eqx.tree_at(lambda t: getattr(t, field), tf, values.reshape(shape))
             return jnp.sum(weights * march(vol, t, cam, step=0.5, shading="phong"))
         return loss
 
@@ -132,8 +134,8 @@ def test_no_nan_gradients_on_edge_volumes(shading):
         g_tf = jax.grad(lambda u: jnp.sum(march(vol, u, cam, shading=shading)))(t)
         return img, jac, g_tf
 
-    for vol in (jnp.zeros((5, 5, 5)), jnp.ones((5, 5, 5)), jnp.zeros((5, 5, 5)).at[0, 0, 0].set(1.0),
-                jnp.ones((1, 1, 1))):
+    corner = jnp.zeros((5, 5, 5)).at[0, 0, 0].set(1.0)
+    for vol in (jnp.zeros((5, 5, 5)), jnp.ones((5, 5, 5)), corner, jnp.ones((1, 1, 1))):
         for leaf in jax.tree.leaves(image_and_derivatives(vol, tf)):
             assert np.all(np.isfinite(leaf))
 

@@ -98,8 +98,8 @@ class Camera(eqx.Module):
         direction = jnp.stack([jnp.sin(e), jnp.cos(e) * jnp.cos(a), jnp.cos(e) * jnp.sin(a)])
         target = jnp.asarray(target, dtype)
         # Looking straight along d, "up" must come from the azimuth instead.
-        up = jnp.where(jnp.abs(jnp.sin(e)) > 1 - 1e-6,
-                       jnp.stack([jnp.zeros_like(a), -jnp.cos(a), -jnp.sin(a)]) * jnp.sign(jnp.sin(e)),
+        toward_azimuth = jnp.stack([jnp.zeros_like(a), -jnp.cos(a), -jnp.sin(a)])
+        up = jnp.where(jnp.abs(jnp.sin(e)) > 1 - 1e-6, toward_azimuth * jnp.sign(jnp.sin(e)),
                        jnp.asarray([1.0, 0.0, 0.0], dtype))
         return cls(target + jnp.asarray(distance, dtype) * direction, target, up,
                    jnp.asarray(fov, dtype), jnp.asarray(width, dtype),

@@ -92,7 +92,7 @@ def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
     ]
     try:
         head, spacing = data.load("colin27", downsample=downsample)
-    except FileNotFoundError as err:
+    except (FileNotFoundError, ImportError) as err:
         print(f"volshade demo: skipping the Colin27 head ({str(err).splitlines()[0]})")
     else:
         front = Camera.orbit(azimuth=30, elevation=10, image_shape=shape, distance=2.6)

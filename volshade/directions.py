@@ -75,20 +75,20 @@ def _check_level(level: int, where: str) -> int:
 def _subdivided_icosahedron(level: int) -> np.ndarray:
     verts, faces = _icosahedron()
     points = list(verts)
+
+    def middle(a: int, b: int, midpoint: dict[tuple[int, int], int]) -> int:
+        edge = (min(a, b), max(a, b))
+        if edge not in midpoint:
+            m = points[a] + points[b]
+            points.append(m / np.linalg.norm(m))
+            midpoint[edge] = len(points) - 1
+        return midpoint[edge]
+
     for _ in range(level):
         midpoint: dict[tuple[int, int], int] = {}
-
-        def middle(a: int, b: int) -> int:
-            edge = (min(a, b), max(a, b))
-            if edge not in midpoint:
-                m = points[a] + points[b]
-                points.append(m / np.linalg.norm(m))
-                midpoint[edge] = len(points) - 1
-            return midpoint[edge]
-
         new_faces = []
         for a, b, c in faces:
-            ab, bc, ca = middle(a, b), middle(b, c), middle(c, a)
+            ab, bc, ca = middle(a, b, midpoint), middle(b, c, midpoint), middle(c, a, midpoint)
             new_faces += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
         faces = new_faces
     out = np.stack(points)
