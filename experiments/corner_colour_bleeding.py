@@ -27,10 +27,9 @@ import jax.numpy as jnp
 import matplotlib
 
 matplotlib.use("Agg")
+import equinox as eqx  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-
-import equinox as eqx  # noqa: E402
 from skimage.filters import gaussian  # noqa: E402
 
 import volshade as vs  # noqa: E402

@@ -9,8 +9,8 @@ from volshade.camera import Camera
 from volshade.importance import Focus, Importance
 from volshade.lao import LocalAmbientOcclusion, lao
 from volshade.obscurance import ObscuranceParams, obscurance
-from volshade.saliency import SaliencyModulation, opacity_factor, saliency
 from volshade.render import march
+from volshade.saliency import SaliencyModulation, opacity_factor, saliency
 from volshade.scene import Scene, render
 from volshade.shading import Phong
 from volshade.transfer import preset

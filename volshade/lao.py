@@ -39,11 +39,14 @@ unrolled so XLA fuses it); the forward pass holds about five volume-sized
 buffers whatever $L$ and $M$.
 
 **Reverse mode** is a hand-written VJP that recomputes instead of storing (the
-checkpointing idea, done by hand): per direction it keeps the transmittance at
-each chunk start, recomputes one chunk at a time and sweeps back through it with
-the suffix sums of eq. 3. The adjoint of a shifted read is the opposite shift, so
-the backward pass is gather- and scatter-free as well. Its memory is about
-$2\sqrt{M} + 8$ volumes for any $L$. Forward-mode (``jax.jvp``) is not
+checkpointing idea, done by hand). Eq. 3 is evaluated back to front in Horner
+form, $H_i = H_{i+1} + 1 - \alpha_i H_{i+1}$ with $M I_l = H_0$, so the march
+carries one volume and each chunk of samples is one fused pass. Per direction the
+backward pass keeps $H$ at each chunk end, then visits the chunks front to back
+carrying the transmittance $T_i$; $\partial (M I_l) / \partial \alpha_i = -T_i
+H_{i+1}$ needs no division by $1 - \alpha_i$. The adjoint of a shifted read is the
+opposite shift, so the backward pass is gather- and scatter-free as well. Its
+memory is about $3\sqrt{M} + 8$ volumes for any $L$. Forward-mode (``jax.jvp``) is not
 available through the custom VJP; ``directions`` are not differentiated.
 """
 
@@ -182,40 +185,40 @@ def _sample_table(samples: int, radius, offset):
     return index, distances, valid, step
 
 
-def _forward_chunks(source, pad, shape, direction, distances, valid, ratio, correction):
-    """March one direction: ``occ = sum_i v_i (1 - T_{i+1})`` (``= M (1 - I_l)``) and the
-    transmittance at each chunk start."""
+def _horner_chunks(source, pad, shape, direction, distances, valid, ratio, correction):
+    r"""March one direction back to front: $H_0$ and $H$ at the end of every chunk.
 
-    def step(carry, sample):
-        transmittance, occlusion = carry
+    $H_{M-1} = 1$ and $H_i = H_{i+1} + v_i (1 - \alpha'_i H_{i+1})$, so that
+    $H_i = \sum_{m \ge i} \prod_{i \le j < m} (1 - \alpha'_j)$ over the valid samples
+    and $H_0 = \sum_m T_m = M I_l$ (eq. 3 in Horner form). One volume is carried,
+    so XLA fuses each chunk into a single pass that reads every sample once.
+    """
+
+    def step(horner, sample):
         distance, is_valid = sample
         alpha = _sample_opacity(source, pad, shape, distance * direction, ratio, correction)
-        transmittance = transmittance * (1 - is_valid * alpha)
-        occlusion = occlusion + is_valid * (1 - transmittance)
-        return (transmittance, occlusion), None
+        return horner + is_valid * (1 - alpha * horner), None
 
-    def chunk(carry, samples):
-        start = carry[0]
-        carry, _ = lax.scan(step, carry, samples, unroll=True)
-        return carry, start
+    def chunk(horner, samples):
+        end = horner
+        horner, _ = lax.scan(step, horner, samples, reverse=True, unroll=True)
+        return horner, end
 
-    dtype = source.dtype
-    init = (jnp.ones(shape, dtype), jnp.zeros(shape, dtype))
-    (_, occlusion), starts = lax.scan(chunk, init, (distances, valid))
-    return occlusion, starts
+    return lax.scan(chunk, jnp.ones(shape, source.dtype), (distances, valid), reverse=True)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3))
 def _occlusion_sum(pad, shape, correction, samples, source, directions, weights, radius,
                    offset):
-    """``sum_l w_l occ_l`` over the directions for one window of ``shape``."""
+    """``sum_l w_l occ_l`` over the directions for one window of ``shape``, where
+    ``occ_l = M - H_0 = M (1 - I_l)``."""
     _, distances, valid, step = _sample_table(samples, radius, offset)
 
     def body(total, direction_weight):
         direction, weight = direction_weight
-        occlusion, _ = _forward_chunks(source, pad, shape, direction, distances, valid, step,
-                                       correction)
-        return total + weight * occlusion, None
+        horner, _ = _horner_chunks(source, pad, shape, direction, distances, valid, step,
+                                   correction)
+        return total + weight * (samples - horner), None
 
     total, _ = lax.scan(body, jnp.zeros(shape, source.dtype), (directions, weights))
     return total
@@ -229,15 +232,16 @@ def _occlusion_sum_fwd(pad, shape, correction, samples, source, directions, weig
 
 
 def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
-    r"""Reverse mode by recomputation: memory about $2\sqrt{M} + 8$ volumes, for any $L$.
+    r"""Reverse mode by recomputation: memory about $3\sqrt{M} + 8$ volumes, for any $L$.
 
-    With $T_{i+1} = T_i (1 - v_i \alpha'_i)$ and $occ = \sum_j v_j (1 - T_{j+1})$,
-    $\partial occ / \partial \alpha'_i = v_i T_i S_i$ with the suffix sum
-    $S_i = v_i + (1 - v_{i+1}\alpha'_{i+1}) S_{i+1}$, which runs back to front. Per
-    direction one forward pass keeps $T$ at each chunk start; chunks are then
-    visited in reverse, each recomputing its $T_i$ and sweeping back with $S$.
-    The cotangent of ``source`` is the opposite shift (a stencil, no scatter). The
-    radius and offset cotangents are accumulated as volumes and reduced once:
+    With $T_{i+1} = T_i (1 - v_i \alpha'_i)$ and the back-to-front sums $H_i$ of
+    :func:`_horner_chunks`, $occ = M - H_0$ and $\partial occ / \partial \alpha'_i =
+    v_i T_i H_{i+1}$: no division by $1 - \alpha'_i$, so exact at $\alpha' = 1$. Per
+    direction one back-to-front pass keeps $H$ at each chunk end; chunks are then
+    visited front to back, carrying $T$: each chunk's samples and slopes are read once
+    (the same eight windows) and kept, its $H_{i+1}$ and $T_i$ follow elementwise,
+    and each sample's cotangent goes back through the opposite shift (a stencil, no
+    scatter). The radius and offset cotangents are reduced per sample:
     $\partial s_i / \partial R = (i + \frac12)/M$, $\partial s_i / \partial a = 1 -
     (i + \frac12)/M$, and the step ratio $(R - a)/M$ of the opacity correction.
     ``directions`` get no cotangent (``lao`` documents them as not differentiated).
@@ -246,61 +250,56 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
     dtype = source.dtype
     index, distances, valid, step = _sample_table(samples, radius, offset)
     coef_radius = (index.astype(dtype) + 0.5) / samples
+    chunk_size = index.shape[1]
 
     def direction_bwd(carry, direction_weight):
         direction, weight = direction_weight
-        occlusion, starts = _forward_chunks(source, pad, shape, direction, distances, valid,
-                                            step, correction)
-        d_weight = jnp.sum(cotangent * occlusion)
+        horner, ends = _horner_chunks(source, pad, shape, direction, distances, valid, step,
+                                      correction)
+        d_weight = jnp.sum(cotangent * (samples - horner))
         ct = weight * cotangent
 
+        def read(_, distance):
+            return None, _trilinear_shifted_with_slope(source, pad, shape, distance * direction,
+                                                       direction)
+
         def chunk_bwd(state, chunk):
-            start, dists, valids, coefs = chunk
-
-            def read(transmittance, sample):
-                distance, is_valid = sample
-                alpha, slope = _trilinear_shifted_with_slope(source, pad, shape,
-                                                             distance * direction, direction)
-                corrected = correct_opacity(alpha, step) if correction else alpha
-                return transmittance * (1 - is_valid * corrected), (transmittance, alpha, slope)
-
-            _, (transmittances, alphas, slopes) = lax.scan(read, start, (dists, valids),
-                                                           unroll=True)
-
-            def sample_bwd(state, sample):
-                suffix_next, d_source, acc_slope, acc_radius = state
-                transmittance, alpha, slope, distance, is_valid, coef = sample
-                suffix = is_valid + suffix_next
-                g_corrected = ct * is_valid * transmittance * suffix
+            end, dists, valids, coefs = chunk
+            transmittance, d_source, d_slope, d_radius = state
+            # One loop (not unrolled) writes the chunk's samples and slopes to memory,
+            # so the elementwise sweeps below reuse them instead of re-reading.
+            _, (alphas, slopes) = lax.scan(read, None, dists)
+            opacities = correct_opacity(alphas, step) if correction else alphas
+            kept = 1 - valids[:, None, None, None] * opacities
+            horners = [end]  # H_{i+1} for i = chunk_size - 1, ..., 0
+            for j in reversed(range(1, chunk_size)):
+                horners.append(horners[-1] + valids[j] * (1 - opacities[j] * horners[-1]))
+            horners.reverse()
+            for j in range(chunk_size):
+                g_corrected = ct * valids[j] * transmittance * horners[j]
                 if correction:
-                    corrected, vjp = jax.vjp(lambda a, r: correct_opacity(a, r), alpha,
-                                             jnp.broadcast_to(step, shape))
+                    _, vjp = jax.vjp(correct_opacity, alphas[j], jnp.broadcast_to(step, shape))
                     g_alpha, g_ratio = vjp(g_corrected)
-                    acc_radius = acc_radius + g_ratio / samples
+                    d_radius = d_radius + jnp.sum(g_ratio) / samples
                 else:
-                    corrected, g_alpha = alpha, g_corrected
-                g_slope = g_alpha * slope
-                acc_slope = acc_slope + g_slope
-                acc_radius = acc_radius + coef * g_slope
+                    g_alpha = g_corrected
+                g_slope = jnp.sum(g_alpha * slopes[j])
+                d_slope = d_slope + g_slope
+                d_radius = d_radius + coefs[j] * g_slope
                 d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad,
-                                                          distance * direction)
-                suffix_next = (1 - is_valid * corrected) * suffix
-                return (suffix_next, d_source, acc_slope, acc_radius), None
+                                                          dists[j] * direction)
+                transmittance = transmittance * kept[j]
+            return (transmittance, d_source, d_slope, d_radius), None
 
-            state, _ = lax.scan(sample_bwd, state,
-                                (transmittances, alphas, slopes, dists, valids, coefs),
-                                reverse=True)
-            return state, None
-
-        (_, *carry), _ = lax.scan(chunk_bwd, (jnp.zeros(shape, dtype), *carry),
-                                  (starts, distances, valid, coef_radius), reverse=True)
+        init = (jnp.ones(shape, dtype), *carry)
+        (_, *carry), _ = lax.scan(chunk_bwd, init, (ends, distances, valid, coef_radius))
         return tuple(carry), d_weight
 
-    init = (jnp.zeros(source.shape, dtype), jnp.zeros(shape, dtype), jnp.zeros(shape, dtype))
-    (d_source, acc_slope, acc_radius), d_weights = lax.scan(direction_bwd, init,
-                                                            (directions, weights))
-    d_radius = jnp.sum(acc_radius)
-    d_offset = jnp.sum(acc_slope) - d_radius
+    zero = jnp.zeros((), dtype)
+    init = (jnp.zeros(source.shape, dtype), zero, zero)
+    (d_source, d_slope, d_radius), d_weights = lax.scan(direction_bwd, init,
+                                                        (directions, weights))
+    d_offset = d_slope - d_radius
     return (d_source, jnp.zeros_like(directions), d_weights, d_radius.astype(radius.dtype),
             d_offset.astype(offset.dtype))
 
