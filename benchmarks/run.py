@@ -25,7 +25,7 @@ import sys
 
 import jax
 
-BENCHMARKS = ("render", "lao", "obscurance", "composition", "gpu")
+BENCHMARKS = ("render", "lao", "obscurance", "composition", "gpu", "gpu_recheck")
 
 
 def _format_table(rows: list[dict]) -> str:
