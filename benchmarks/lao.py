@@ -192,7 +192,7 @@ def run_gpu(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: float = 5
     loss = lambda a, rr: jnp.sum(lao(a, directions=dirs, radius=rr, offset=1.0,  # noqa: E731
                                      samples=samples, max_radius=radius))
     both = jax.jit(jax.value_and_grad(loss, (0, 1)))
-    t_b = time_fn(both, alpha, r, repeats=2)
+    t_b = time_fn(both, alpha, r, repeats=1)
     peak_grad = (jax.devices()[0].memory_stats() or {}).get("peak_bytes_in_use", float("nan"))
     mem_f = fwd.lower(alpha, r).compile().memory_analysis()
     mem_b = both.lower(alpha, r).compile().memory_analysis()
