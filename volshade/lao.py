@@ -38,15 +38,20 @@ chunks of samples are ``lax.scan`` loops (each chunk of about $\sqrt{M}$ samples
 unrolled so XLA fuses it); the forward pass holds about five volume-sized
 buffers whatever $L$ and $M$.
 
+**Forward** evaluates eq. 3 back to front in Horner form,
+$H_i = H_{i+1} + 1 - \alpha_i H_{i+1}$ with $M I_l = H_0$, so the march carries
+one volume and each chunk of samples is one fused pass reading every sample once.
+
 **Reverse mode** is a hand-written VJP that recomputes instead of storing (the
-checkpointing idea, done by hand). Eq. 3 is evaluated back to front in Horner
-form, $H_i = H_{i+1} + 1 - \alpha_i H_{i+1}$ with $M I_l = H_0$, so the march
-carries one volume and each chunk of samples is one fused pass. Per direction the
-backward pass keeps $H$ at each chunk end, then visits the chunks front to back
-carrying the transmittance $T_i$; $\partial (M I_l) / \partial \alpha_i = -T_i
-H_{i+1}$ needs no division by $1 - \alpha_i$. The adjoint of a shifted read is the
-opposite shift, so the backward pass is gather- and scatter-free as well. Its
-memory is about $3\sqrt{M} + 8$ volumes for any $L$. Forward-mode (``jax.jvp``) is not
+checkpointing idea, done by hand). Per direction one front-to-back pass keeps the
+transmittance $T$ at each chunk start; the chunks are then visited in reverse,
+each recomputing its $T_i$ and sweeping back with the suffix sums
+$S_i = 1 + (1 - \alpha_{i+1}) S_{i+1}$, so $\partial (M I_l)/\partial \alpha_i =
+-T_i S_i$ needs no division by $1 - \alpha_i$ (exact at $\alpha = 1$). The adjoint
+of a shifted read is the opposite shift, so the backward pass is gather- and
+scatter-free as well; its memory is about $2\sqrt{M} + 8$ volumes for any $L$.
+(A variant that stored each chunk's reads was faster on CPU but slower and twice
+as memory-hungry on an H200, so it was not kept.) Forward mode (``jax.jvp``) is not
 available through the custom VJP; ``directions`` are not differentiated.
 """
 
@@ -207,6 +212,29 @@ def _horner_chunks(source, pad, shape, direction, distances, valid, ratio, corre
     return lax.scan(chunk, jnp.ones(shape, source.dtype), (distances, valid), reverse=True)
 
 
+def _forward_chunks(source, pad, shape, direction, distances, valid, ratio, correction):
+    """March one direction: ``occ = sum_i v_i (1 - T_{i+1})`` (``= M (1 - I_l)``) and the
+    transmittance at each chunk start."""
+
+    def step(carry, sample):
+        transmittance, occlusion = carry
+        distance, is_valid = sample
+        alpha = _sample_opacity(source, pad, shape, distance * direction, ratio, correction)
+        transmittance = transmittance * (1 - is_valid * alpha)
+        occlusion = occlusion + is_valid * (1 - transmittance)
+        return (transmittance, occlusion), None
+
+    def chunk(carry, samples):
+        start = carry[0]
+        carry, _ = lax.scan(step, carry, samples, unroll=True)
+        return carry, start
+
+    dtype = source.dtype
+    init = (jnp.ones(shape, dtype), jnp.zeros(shape, dtype))
+    (_, occlusion), starts = lax.scan(chunk, init, (distances, valid))
+    return occlusion, starts
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3))
 def _occlusion_sum(pad, shape, correction, samples, source, directions, weights, radius,
                    offset):
@@ -232,16 +260,15 @@ def _occlusion_sum_fwd(pad, shape, correction, samples, source, directions, weig
 
 
 def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
-    r"""Reverse mode by recomputation: memory about $3\sqrt{M} + 8$ volumes, for any $L$.
+    r"""Reverse mode by recomputation: memory about $2\sqrt{M} + 8$ volumes, for any $L$.
 
-    With $T_{i+1} = T_i (1 - v_i \alpha'_i)$ and the back-to-front sums $H_i$ of
-    :func:`_horner_chunks`, $occ = M - H_0$ and $\partial occ / \partial \alpha'_i =
-    v_i T_i H_{i+1}$: no division by $1 - \alpha'_i$, so exact at $\alpha' = 1$. Per
-    direction one back-to-front pass keeps $H$ at each chunk end; chunks are then
-    visited front to back, carrying $T$: each chunk's samples and slopes are read once
-    (the same eight windows) and kept, its $H_{i+1}$ and $T_i$ follow elementwise,
-    and each sample's cotangent goes back through the opposite shift (a stencil, no
-    scatter). The radius and offset cotangents are reduced per sample:
+    With $T_{i+1} = T_i (1 - v_i \alpha'_i)$ and $occ = \sum_j v_j (1 - T_{j+1})$,
+    $\partial occ / \partial \alpha'_i = v_i T_i S_i$ with the suffix sum
+    $S_i = v_i + (1 - v_{i+1}\alpha'_{i+1}) S_{i+1}$, which runs back to front. Per
+    direction one forward pass keeps $T$ at each chunk start; chunks are then
+    visited in reverse, each recomputing its $T_i$ and sweeping back with $S$.
+    The cotangent of ``source`` is the opposite shift (a stencil, no scatter). The
+    radius and offset cotangents are accumulated as volumes and reduced once:
     $\partial s_i / \partial R = (i + \frac12)/M$, $\partial s_i / \partial a = 1 -
     (i + \frac12)/M$, and the step ratio $(R - a)/M$ of the opacity correction.
     ``directions`` get no cotangent (``lao`` documents them as not differentiated).
@@ -250,56 +277,60 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
     dtype = source.dtype
     index, distances, valid, step = _sample_table(samples, radius, offset)
     coef_radius = (index.astype(dtype) + 0.5) / samples
-    chunk_size = index.shape[1]
 
     def direction_bwd(carry, direction_weight):
         direction, weight = direction_weight
-        horner, ends = _horner_chunks(source, pad, shape, direction, distances, valid, step,
-                                      correction)
-        d_weight = jnp.sum(cotangent * (samples - horner))
+        occlusion, starts = _forward_chunks(source, pad, shape, direction, distances, valid,
+                                            step, correction)
+        d_weight = jnp.sum(cotangent * occlusion)
         ct = weight * cotangent
 
-        def read(_, distance):
-            return None, _trilinear_shifted_with_slope(source, pad, shape, distance * direction,
-                                                       direction)
-
         def chunk_bwd(state, chunk):
-            end, dists, valids, coefs = chunk
-            transmittance, d_source, d_slope, d_radius = state
-            # One loop (not unrolled) writes the chunk's samples and slopes to memory,
-            # so the elementwise sweeps below reuse them instead of re-reading.
-            _, (alphas, slopes) = lax.scan(read, None, dists)
-            opacities = correct_opacity(alphas, step) if correction else alphas
-            kept = 1 - valids[:, None, None, None] * opacities
-            horners = [end]  # H_{i+1} for i = chunk_size - 1, ..., 0
-            for j in reversed(range(1, chunk_size)):
-                horners.append(horners[-1] + valids[j] * (1 - opacities[j] * horners[-1]))
-            horners.reverse()
-            for j in range(chunk_size):
-                g_corrected = ct * valids[j] * transmittance * horners[j]
-                if correction:
-                    _, vjp = jax.vjp(correct_opacity, alphas[j], jnp.broadcast_to(step, shape))
-                    g_alpha, g_ratio = vjp(g_corrected)
-                    d_radius = d_radius + jnp.sum(g_ratio) / samples
-                else:
-                    g_alpha = g_corrected
-                g_slope = jnp.sum(g_alpha * slopes[j])
-                d_slope = d_slope + g_slope
-                d_radius = d_radius + coefs[j] * g_slope
-                d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad,
-                                                          dists[j] * direction)
-                transmittance = transmittance * kept[j]
-            return (transmittance, d_source, d_slope, d_radius), None
+            start, dists, valids, coefs = chunk
 
-        init = (jnp.ones(shape, dtype), *carry)
-        (_, *carry), _ = lax.scan(chunk_bwd, init, (ends, distances, valid, coef_radius))
+            def t_step(transmittance, sample):
+                distance, is_valid = sample
+                alpha = _sample_opacity(source, pad, shape, distance * direction, step,
+                                        correction)
+                return transmittance * (1 - is_valid * alpha), transmittance
+
+            _, transmittances = lax.scan(t_step, start, (dists, valids))
+
+            def sample_bwd(state, sample):
+                suffix_next, d_source, acc_slope, acc_radius = state
+                transmittance, distance, is_valid, coef = sample
+                offset_vec = distance * direction
+                alpha, slope = _trilinear_shifted_with_slope(source, pad, shape, offset_vec,
+                                                             direction)
+                suffix = is_valid + suffix_next
+                g_corrected = ct * is_valid * transmittance * suffix
+                if correction:
+                    corrected, vjp = jax.vjp(lambda a, r: correct_opacity(a, r), alpha,
+                                             jnp.broadcast_to(step, shape))
+                    g_alpha, g_ratio = vjp(g_corrected)
+                    acc_radius = acc_radius + g_ratio / samples
+                else:
+                    corrected, g_alpha = alpha, g_corrected
+                g_slope = g_alpha * slope
+                acc_slope = acc_slope + g_slope
+                acc_radius = acc_radius + coef * g_slope
+                d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad, offset_vec)
+                suffix_next = (1 - is_valid * corrected) * suffix
+                return (suffix_next, d_source, acc_slope, acc_radius), None
+
+            state, _ = lax.scan(sample_bwd, state, (transmittances, dists, valids, coefs),
+                                reverse=True)
+            return state, None
+
+        (_, *carry), _ = lax.scan(chunk_bwd, (jnp.zeros(shape, dtype), *carry),
+                                  (starts, distances, valid, coef_radius), reverse=True)
         return tuple(carry), d_weight
 
-    zero = jnp.zeros((), dtype)
-    init = (jnp.zeros(source.shape, dtype), zero, zero)
-    (d_source, d_slope, d_radius), d_weights = lax.scan(direction_bwd, init,
-                                                        (directions, weights))
-    d_offset = d_slope - d_radius
+    init = (jnp.zeros(source.shape, dtype), jnp.zeros(shape, dtype), jnp.zeros(shape, dtype))
+    (d_source, acc_slope, acc_radius), d_weights = lax.scan(direction_bwd, init,
+                                                            (directions, weights))
+    d_radius = jnp.sum(acc_radius)
+    d_offset = jnp.sum(acc_slope) - d_radius
     return (d_source, jnp.zeros_like(directions), d_weights, d_radius.astype(radius.dtype),
             d_offset.astype(offset.dtype))
 
