@@ -112,7 +112,8 @@ lines += [f"| {r['directions']} | {r['L']} | {r['M']} | {r['seconds']:.3f} | "
           f"{r['mean_err']:.4f} | {r['max_err']:.4f} |" for r in rows]
 (OUT / "lao_accuracy_cost.md").write_text(
     f"LAO error against a 642-direction, 64-sample reference, shells phantom {N}^3, "
-    f"R = {RADIUS:g}, offset 1, opacity correction on, on {jax.devices()[0].platform}.\n\n" + "\n".join(lines) + "\n")
+    f"R = {RADIUS:g}, offset 1, opacity correction on, on {jax.devices()[0].platform}.\n\n"
+    + "\n".join(lines) + "\n")
 
 # %% [markdown]
 # More directions and more samples both reduce the error; time grows with L x M.
