@@ -95,7 +95,7 @@ def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
     except (FileNotFoundError, ImportError) as err:
         print(f"volshade demo: skipping the Colin27 head ({str(err).splitlines()[0]})")
     else:
-        front = Camera.orbit(azimuth=30, elevation=10, image_shape=shape, distance=2.6)
+        front = Camera.orbit(azimuth=30, elevation=10, image_shape=shape, distance=3.0)
         voxel = float(min(spacing))
         common = dict(volume=head, spacing=spacing, step=voxel / 2, background=bg)
         skin = dict(common, transfer=transfer.preset("head"))
