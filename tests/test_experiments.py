@@ -1,4 +1,4 @@
-"""Every experiment runs at its small size, so none can rot."""
+"""Every experiment runs at its small size (VOLSHADE_QUICK=1), so none can rot."""
 
 import pathlib
 import runpy
@@ -7,21 +7,22 @@ import pytest
 
 EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1] / "experiments"
 
+# script -> (figures it must write, (table, a line the table must hold))
+CASES = {
+    "lao_accuracy_cost.py": (["lao_accuracy_cost.png"],
+                             ("lao_accuracy_cost.md", "| icosphere 42 |")),
+    "corner_colour_bleeding.py": (["corner_obscurance_rho.png", "corner_obscurance_render.png"],
+                                  ("corner_obscurance_rho.md", "| sqrt |")),
+}
+
 
 @pytest.mark.slow
-def test_lao_accuracy_cost(tmp_path, monkeypatch):
+@pytest.mark.parametrize("script", sorted(CASES))
+def test_experiment_runs_and_writes_its_results(script, tmp_path, monkeypatch):
     monkeypatch.setenv("VOLSHADE_QUICK", "1")
     monkeypatch.setenv("VOLSHADE_DOCS", str(tmp_path))
-    runpy.run_path(str(EXPERIMENTS / "lao_accuracy_cost.py"), run_name="__main__")
-    assert (tmp_path / "lao_accuracy_cost.png").stat().st_size > 10_000
-    assert "| icosphere 42 |" in (tmp_path / "lao_accuracy_cost.md").read_text()
-
-
-@pytest.mark.slow
-def test_corner_colour_bleeding(tmp_path, monkeypatch):
-    monkeypatch.setenv("VOLSHADE_QUICK", "1")
-    monkeypatch.setenv("VOLSHADE_DOCS", str(tmp_path))
-    runpy.run_path(str(EXPERIMENTS / "corner_colour_bleeding.py"), run_name="__main__")
-    assert (tmp_path / "corner_obscurance_rho.png").stat().st_size > 10_000
-    assert (tmp_path / "corner_obscurance_render.png").stat().st_size > 10_000
-    assert "| sqrt |" in (tmp_path / "corner_obscurance_rho.md").read_text()
+    runpy.run_path(str(EXPERIMENTS / script), run_name="__main__")
+    figures, (table, line) = CASES[script]
+    for figure in figures:
+        assert (tmp_path / figure).stat().st_size > 10_000
+    assert line in (tmp_path / table).read_text()
