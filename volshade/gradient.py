@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import safe_norm
+from ._numerics import safe_div, safe_norm
 from ._types import Array, Float
 
 _WEIGHTS = {
@@ -102,6 +102,14 @@ def regression_gradient(
     return jnp.moveaxis(out, 0, -1)
 
 
-def gradient_magnitude(gradient: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
-    """Euclidean norm of a gradient field with a zero (not NaN) derivative at 0."""
-    return safe_norm(gradient, axis=-1)
+def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = False
+                       ) -> Float[Array, "*batch"]:
+    """Euclidean norm over the last axis, with a zero (not NaN) derivative at 0.
+
+    With ``scaled=True`` the magnitudes are divided by their maximum, so they lie in
+    [0, 1] (all zeros where the maximum is 0): the $m_G$ of importance-aware
+    composition and the voxel saliency of Ruiz et al. (eq. 4) both use this. The
+    last axis may hold several stacked gradients (e.g. one per colour channel).
+    """
+    magnitude = safe_norm(gradient, axis=-1)
+    return safe_div(magnitude, jnp.max(magnitude)) if scaled else magnitude

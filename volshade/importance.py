@@ -33,6 +33,7 @@ import numpy as np
 from . import _checks
 from ._numerics import safe_div, safe_norm, safe_normalize, safe_pow, smoothstep
 from ._types import Array, ArrayLike, Float
+from .gradient import gradient_magnitude
 
 
 def _scalar(x: ArrayLike) -> Array:
@@ -300,9 +301,7 @@ def normalized_gradient_magnitude(gradient: Float[ArrayLike, "D H W 3"]) -> Floa
     gradient = _checks.as_float_array(gradient, "gradient", where)
     if gradient.ndim != 4 or gradient.shape[-1] != 3:
         raise ValueError(f"{where}: `gradient` must be (D, H, W, 3), got {gradient.shape}.")
-    gradient = _checks.finite(gradient, "gradient", where)
-    mag = safe_norm(gradient)
-    return safe_div(mag, jnp.max(mag))
+    return gradient_magnitude(_checks.finite(gradient, "gradient", where), scaled=True)
 
 
 # --------------------------------------------------------------------------- focus + context

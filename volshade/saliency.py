@@ -35,10 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import correct_opacity, safe_div, safe_sqrt
+from ._numerics import correct_opacity, safe_div
 from ._types import Array, ArrayLike, Float
 from .directions import icosphere_points
-from .gradient import regression_gradient
+from .gradient import gradient_magnitude, regression_gradient
 from .obscurance import (
     _direction_array,
     _line_groups,
@@ -111,13 +111,9 @@ def saliency(
         raise ValueError(f"{where}: `obscurance` must have shape (D, H, W) or (D, H, W, C), "
                          f"got {arr.shape}; for a batch, use `jax.vmap`.")
     arr = _checks.finite(arr, "obscurance", where)
-    sq = jnp.zeros(arr.shape[:3], arr.dtype)
-    for ch in channels:
-        shifted = ch - jnp.min(ch)
-        grad = regression_gradient(shifted, spacing=spacing, size=size, weighting=weighting)
-        sq = sq + jnp.sum(grad * grad, axis=-1)
-    magnitude = safe_sqrt(sq)
-    return safe_div(magnitude, jnp.max(magnitude))
+    grads = [regression_gradient(ch - jnp.min(ch), spacing=spacing, size=size,
+                                 weighting=weighting) for ch in channels]
+    return gradient_magnitude(jnp.concatenate(grads, axis=-1), scaled=True)
 
 
 _VISIBILITY = {
