@@ -262,6 +262,47 @@ def test_bricked_equals_unbricked(brick_size):
     assert float(full.min()) < 0.9  # something was occluded
 
 
+@pytest.mark.parametrize("brick_size", [None, 8])
+def test_traced_radius_far_beyond_the_volume(brick_size):
+    # radius traced without max_radius: the padding is then only the volume extent and
+    # reads far outside it must clamp into zeros (lax.dynamic_slice would wrap a
+    # negative start back into the volume), with or without bricks wider than it
+    alpha = _random_alpha((5, 6, 7), 15, jnp.float64)
+    dirs = vdirs.fibonacci(8)
+    f = jax.jit(lambda a, r: lao(a, directions=dirs, radius=r, offset=0.5, samples=6,
+                                 brick_size=brick_size))
+    for radius in (3.0, 20.0):
+        np.testing.assert_allclose(np.asarray(f(alpha, radius)),
+                                   np.asarray(lao_reference(alpha, dirs, radius, 0.5, 6)),
+                                   rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("correction", [False, True])
+def test_bricked_gradient_through_skipped_bricks(correction):
+    # most bricks are skipped (AO = 1 there without marching), but raising the opacity
+    # of a zero voxel next to them lowers their AO: that gradient must not be lost
+    alpha = np.zeros((24, 20, 16))
+    alpha[3:6, 4:6, 3:5] = np.random.default_rng(16).uniform(0.2, 0.9, (3, 2, 2))
+    alpha = jnp.asarray(alpha)
+    dirs = vdirs.fibonacci(5)
+    target = jnp.asarray(np.random.default_rng(17).uniform(0.5, 1.0, alpha.shape))
+
+    def f(a, r, off, brick):
+        ao = lao(a, directions=dirs, radius=r, offset=off, samples=5, max_radius=3.0,
+                 opacity_correction=correction, weights=jnp.arange(1.0, 6.0),
+                 brick_size=brick)
+        return jnp.sum(target * ao)
+
+    grad = jax.jit(jax.grad(f, (0, 1, 2)), static_argnums=3)
+    g_full = grad(alpha, 2.7, 0.6, None)
+    g_brick = grad(alpha, 2.7, 0.6, 4)
+    assert float(jnp.max(jnp.abs(g_full[0][18:, :, :]))) > 1e-3  # empty space has a gradient
+    np.testing.assert_allclose(np.asarray(g_brick[0]), np.asarray(g_full[0]), rtol=0,
+                               atol=1e-12)
+    for k in (1, 2):
+        np.testing.assert_allclose(float(g_brick[k]), float(g_full[k]), rtol=1e-12)
+
+
 def test_bricked_gradients_and_vmap():
     alpha = _sparse_alpha((12, 12, 12), 13, jnp.float64)
     dirs = vdirs.fibonacci(3)

@@ -53,6 +53,13 @@ scatter-free as well; its memory is about $2\sqrt{M} + 8$ volumes for any $L$.
 (A variant that stored each chunk's reads was faster on CPU but slower and twice
 as memory-hungry on an H200, so it was not kept.) Forward mode (``jax.jvp``) is not
 available through the custom VJP; ``directions`` are not differentiated.
+
+**Bricks** (``brick_size``): bricks with no opacity within reach get AO = 1 and
+are not marched; the active ones are compacted and marched in groups, ``vmap``-ped
+over their padded windows. Their gradient w.r.t. the opacity is not zero (opacity
+added near an empty brick would darken it); at zero opacity it is a fixed kernel,
+applied in the backward pass as one FFT convolution, so bricked gradients equal
+unbricked ones.
 """
 
 import functools
@@ -63,6 +70,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.scipy.signal import fftconvolve
 
 from . import _checks
 from . import directions as _directions
@@ -100,8 +108,11 @@ def _corner_slices(source: Array, pad: tuple[int, int, int], shape: tuple[int, i
     """
     floor = jnp.floor(offset)
     n = floor.astype(jnp.int32)
-    slices = {c: lax.dynamic_slice(source, tuple(pad[ax] + n[ax] + c[ax] for ax in range(3)),
-                                   shape) for c in _CORNERS}
+    # clamp here: lax.dynamic_slice would wrap a negative start around, like NumPy
+    limit = tuple(source.shape[ax] - shape[ax] for ax in range(3))
+    slices = {c: lax.dynamic_slice(
+        source, tuple(jnp.clip(pad[ax] + n[ax] + c[ax], 0, limit[ax]) for ax in range(3)),
+        shape) for c in _CORNERS}
     return offset - floor, n, slices
 
 
@@ -351,8 +362,23 @@ def _march(source, pad, shape, directions, weights, radius, offset, samples,
 # --------------------------------------------------------------------------- bricks
 
 
-def _bricked(alpha, pad, brick, march) -> Array:
-    """Run ``march`` only on bricks whose neighbourhood within ``pad`` voxels is non-empty."""
+def _brick_group(brick: int, n_bricks: int) -> int:
+    """How many bricks are marched together, vectorised: about $2^{16}$ voxels on a CPU
+    (a group's working set then stays in cache; measured best of $2^{16}$, $2^{18}$,
+    $2^{20}$) and $2^{21}$ elsewhere, where one kernel needs that many threads."""
+    target = 2**16 if jax.default_backend() == "cpu" else 2**21
+    return max(1, min(n_bricks, target // brick**3))
+
+
+def _bricked(alpha, pad, brick, march) -> tuple[Array, Array]:
+    """Run ``march`` only on bricks whose neighbourhood within ``pad`` voxels is non-empty;
+    return AO (1 in the other bricks) and the mask of the voxels that were skipped.
+
+    Active bricks are compacted and marched in groups: each group's padded windows
+    are copied out and the march is ``vmap``-ped over them, so one pass covers the
+    whole group (a brick at a time is too little work per kernel to pay off). The
+    group body is checkpointed, so reverse mode keeps brick indices, not windows.
+    """
     shape = alpha.shape
     n_bricks = tuple(-(-s // brick) for s in shape)
     aligned = tuple(nb * brick for nb in n_bricks)
@@ -366,23 +392,81 @@ def _bricked(alpha, pad, brick, march) -> Array:
         occupied, False, lax.bitwise_or, tuple(2 * r + 1 for r in reach), (1, 1, 1),
         tuple((r, r) for r in reach))
     total = math.prod(n_bricks)
-    (index,) = jnp.nonzero(active.reshape(-1), size=total, fill_value=total)
+    group = _brick_group(brick, total)
+    n_groups = -(-total // group)
+    (index,) = jnp.nonzero(active.reshape(-1), size=n_groups * group, fill_value=total)
     window = tuple(brick + 2 * p for p in pad)
     out_shape = (brick,) * 3
 
-    def one(i):
-        def compute(i):
-            coords = jnp.unravel_index(i, n_bricks)
-            start = tuple(c * brick for c in coords)
-            return march(lax.dynamic_slice(source, start, window), out_shape)
+    @jax.checkpoint
+    def one(indices):
+        def compute(indices):
+            coords = jnp.unravel_index(jnp.minimum(indices, total - 1), n_bricks)
+            starts = brick * jnp.stack(coords, -1)
+            windows = jax.vmap(lambda st: lax.dynamic_slice(source, tuple(st), window))(starts)
+            return jax.vmap(lambda w: march(w, out_shape))(windows)
 
-        return lax.cond(i < total, compute, lambda i: jnp.ones(out_shape, alpha.dtype), i)
+        # compacted indices: a group that starts with the fill value is all fill
+        return lax.cond(indices[0] < total, compute,
+                        lambda i: jnp.ones((group, *out_shape), alpha.dtype), indices)
 
-    computed = lax.map(one, index)
+    computed = lax.map(one, index.reshape(n_groups, group)).reshape(-1, *out_shape)
     result = jnp.ones((total, *out_shape), alpha.dtype).at[index].set(computed, mode="drop")
     result = result.reshape(*n_bricks, *out_shape).transpose(0, 3, 1, 4, 2, 5)
     result = result.reshape(aligned)
-    return result[: shape[0], : shape[1], : shape[2]]
+    skipped = jnp.repeat(jnp.repeat(jnp.repeat(~active, brick, 0), brick, 1), brick, 2)
+    crop = (slice(0, shape[0]), slice(0, shape[1]), slice(0, shape[2]))
+    return result[crop], skipped[crop]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))
+def _skipped_gradient(pad, samples, correction, skipped, alpha, directions, weights, radius,
+                      offset) -> Array:
+    r"""Zero, carrying the gradient w.r.t. ``alpha`` of the AO of ``skipped`` voxels.
+
+    A skipped voxel $x$ has no opacity within reach, so its AO is 1 whatever the
+    radius, offset and weights, but not whatever the opacity: raising $\alpha$ at a
+    zero-opacity voxel $y$ near it lowers $\mathrm{AO}(x)$. At zero opacity every
+    $T_i = 1$ and $S_i = M - 1 - i$, so that derivative is the fixed kernel
+    $\partial \mathrm{AO}(x) / \partial \alpha(x + d) = -\frac{\kappa}{M} K(d)$,
+    $K(d) = \sum_l \hat w_l \sum_i (M - 1 - i)\, w_c(s_i l)$ over the trilinear
+    corners $\lfloor s_i l \rfloor + c = d$ ($\kappa$ the step ratio with opacity
+    correction, else 1). The backward pass applies it to the skipped voxels'
+    cotangent as one FFT convolution, whatever $L$ and $M$, so bricked gradients
+    equal unbricked ones and skipping stays cheap in reverse mode too.
+    """
+    del pad, samples, correction, skipped, directions, weights, radius, offset
+    return jnp.zeros_like(alpha)
+
+
+def _skipped_gradient_fwd(pad, samples, correction, skipped, alpha, directions, weights,
+                          radius, offset):
+    out = _skipped_gradient(pad, samples, correction, skipped, alpha, directions, weights,
+                            radius, offset)
+    return out, (skipped, directions, weights, radius, offset)
+
+
+def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
+    skipped, directions, weights, radius, offset = residuals
+    index, distances, valid, step = _sample_table(samples, radius, offset)
+    suffix = valid * (samples - 1 - index).astype(valid.dtype)
+    positions = distances.reshape(-1)[:, None, None] * directions[None]  # (samples, L, 3)
+    floor = jnp.floor(positions)
+    frac = positions - floor
+    base = floor.astype(jnp.int32) + jnp.asarray(pad)[None, None, :]
+    scale = suffix.reshape(-1)[:, None] * weights[None]
+    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), cotangent.dtype)
+    for corner, weight in _corner_weights(tuple(frac[..., ax] for ax in range(3))):
+        where = tuple((base[..., ax] + corner[ax]).reshape(-1) for ax in range(3))
+        kernel = kernel.at[where].add((scale * weight).reshape(-1), mode="drop")
+    kappa = step if correction else 1
+    d_alpha = -(kappa / samples) * fftconvolve(
+        jnp.where(skipped, cotangent, 0), kernel, mode="same")
+    return (None, d_alpha.astype(cotangent.dtype), jnp.zeros_like(directions),
+            jnp.zeros_like(weights), jnp.zeros_like(radius), jnp.zeros_like(offset))
+
+
+_skipped_gradient.defvjp(_skipped_gradient_fwd, _skipped_gradient_bwd)
 
 
 # --------------------------------------------------------------------------- public API
@@ -478,7 +562,10 @@ def lao(
             default) is the seeds' form.
         brick_size: if set, split the volume into bricks of this edge (voxels) and
             march only bricks with opacity within reach; the others get AO = 1
-            without any work. Results equal the unbricked path.
+            without any work. Results and gradients equal the unbricked path (the
+            skipped bricks' gradient w.r.t. ``alpha`` is one FFT convolution). It
+            pays on sparse volumes; on dense ones it costs more than it saves
+            (``python -m benchmarks.run lao`` measures both).
         max_radius: static upper bound on ``radius`` (voxels), which sets the zero
             padding (``ceil(max_radius) + 1`` voxels per side) and the brick halo. By
             default it is ``radius`` when that is a concrete number, and the volume
@@ -564,7 +651,10 @@ def lao(
         weights = weights / jnp.where(total > 0, total, 1)
 
     bound = max_radius if max_radius is not None else r_value
-    pad = tuple(s if bound is None else min(s, math.ceil(bound) + 1) for s in alpha.shape)
+    # a padding as wide as the (brick-aligned) volume makes clamped reads land in zeros
+    extent = (alpha.shape if brick_size is None
+              else tuple(-(-s // brick_size) * brick_size for s in alpha.shape))
+    pad = tuple(e if bound is None else min(e, math.ceil(bound) + 1) for e in extent)
 
     return _lao(alpha, dirs, weights, radius, offset, pad=pad, samples=samples,
                 correction=opacity_correction, brick_size=brick_size)
@@ -579,7 +669,9 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
     if brick_size is None:
         source = jnp.pad(alpha, tuple((p, p) for p in pad))
         return march(source, alpha.shape)
-    return _bricked(alpha, pad, brick_size, march)
+    ao, skipped = _bricked(alpha, pad, brick_size, march)
+    return ao + _skipped_gradient(pad, samples, correction, skipped, alpha, dirs, weights,
+                                  radius, offset)
 
 
 class LocalAmbientOcclusion(eqx.Module):
