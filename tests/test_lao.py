@@ -1,5 +1,7 @@
 """Tests of volshade.lao: reference agreement, analytic values, properties, autodiff, bricks."""
 
+import sys
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -251,8 +253,14 @@ def test_grads_finite_at_voxel_boundary_crossing():
 # ----------------------------------------------------------------- bricks
 
 
+@pytest.fixture
+def always_bricked(monkeypatch):
+    """March bricks however many are active (by default dense volumes skip bricking)."""
+    monkeypatch.setattr(sys.modules["volshade.lao"], "_MAX_ACTIVE_FRACTION", 1.0)
+
+
 @pytest.mark.parametrize("brick_size", [4, 5])
-def test_bricked_equals_unbricked(brick_size):
+def test_bricked_equals_unbricked(brick_size, always_bricked):
     alpha = _sparse_alpha((20, 18, 16), 12)
     kw = dict(directions=vdirs.fibonacci(6).astype(jnp.float32), radius=4.5, offset=0.5,
               samples=5, opacity_correction=True)
@@ -263,7 +271,7 @@ def test_bricked_equals_unbricked(brick_size):
 
 
 @pytest.mark.parametrize("brick_size", [None, 8])
-def test_traced_radius_far_beyond_the_volume(brick_size):
+def test_traced_radius_far_beyond_the_volume(brick_size, always_bricked):
     # radius traced without max_radius: the padding is then only the volume extent and
     # reads far outside it must clamp into zeros (lax.dynamic_slice would wrap a
     # negative start back into the volume), with or without bricks wider than it
@@ -279,6 +287,7 @@ def test_traced_radius_far_beyond_the_volume(brick_size):
 
 @pytest.mark.parametrize("correction", [False, True])
 def test_bricked_gradient_through_skipped_bricks(correction):
+    # (a quarter of the bricks are active: the bricked branch runs by default)
     # most bricks are skipped (AO = 1 there without marching), but raising the opacity
     # of a zero voxel next to them lowers their AO: that gradient must not be lost
     alpha = np.zeros((24, 20, 16))
@@ -303,7 +312,17 @@ def test_bricked_gradient_through_skipped_bricks(correction):
         np.testing.assert_allclose(float(g_brick[k]), float(g_full[k]), rtol=1e-12)
 
 
-def test_bricked_gradients_and_vmap():
+def test_dense_volume_falls_back_to_the_plain_march():
+    alpha = _random_alpha((12, 12, 12), 18)
+    lao_module = sys.modules["volshade.lao"]
+    active = lao_module._active_bricks(alpha, (5, 5, 5), 4)
+    assert float(jnp.mean(active)) > lao_module._MAX_ACTIVE_FRACTION
+    kw = dict(directions=vdirs.fibonacci(4).astype(jnp.float32), radius=4.0, samples=4)
+    np.testing.assert_array_equal(np.asarray(lao(alpha, brick_size=4, **kw)),
+                                  np.asarray(lao(alpha, **kw)))
+
+
+def test_bricked_gradients_and_vmap(always_bricked):
     alpha = _sparse_alpha((12, 12, 12), 13, jnp.float64)
     dirs = vdirs.fibonacci(3)
 

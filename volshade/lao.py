@@ -56,7 +56,8 @@ available through the custom VJP; ``directions`` are not differentiated.
 
 **Bricks** (``brick_size``): bricks with no opacity within reach get AO = 1 and
 are not marched; the active ones are compacted and marched in groups, ``vmap``-ped
-over their padded windows. Their gradient w.r.t. the opacity is not zero (opacity
+over their padded windows. When more than half are active the plain march is
+used instead (``lax.cond``; under ``vmap`` both branches run). Their gradient w.r.t. the opacity is not zero (opacity
 added near an empty brick would darken it); at zero opacity it is a fixed kernel,
 applied in the backward pass as one FFT convolution, so bricked gradients equal
 unbricked ones.
@@ -370,9 +371,26 @@ def _brick_group(brick: int, n_bricks: int) -> int:
     return max(1, min(n_bricks, target // brick**3))
 
 
-def _bricked(alpha, pad, brick, march) -> tuple[Array, Array]:
-    """Run ``march`` only on bricks whose neighbourhood within ``pad`` voxels is non-empty;
-    return AO (1 in the other bricks) and the mask of the voxels that were skipped.
+_MAX_ACTIVE_FRACTION = 0.5
+
+
+def _active_bricks(alpha, pad, brick) -> Array:
+    """Bricks (a boolean grid) with opacity within ``pad`` voxels of them."""
+    shape = alpha.shape
+    n_bricks = tuple(-(-s // brick) for s in shape)
+    extra = tuple(nb * brick - s for nb, s in zip(n_bricks, shape, strict=True))
+    blocks = jnp.pad(alpha, tuple((0, e) for e in extra)).reshape(
+        n_bricks[0], brick, n_bricks[1], brick, n_bricks[2], brick)
+    occupied = jnp.any(blocks > 0, axis=(1, 3, 5))
+    reach = tuple(-(-p // brick) for p in pad)
+    return lax.reduce_window(
+        occupied, False, lax.bitwise_or, tuple(2 * r + 1 for r in reach), (1, 1, 1),
+        tuple((r, r) for r in reach))
+
+
+def _bricked(alpha, active, pad, brick, march) -> tuple[Array, Array]:
+    """Run ``march`` only on the ``active`` bricks; return AO (1 in the other bricks) and
+    the mask of the voxels that were skipped.
 
     Active bricks are compacted and marched in groups: each group's padded windows
     are copied out and the march is ``vmap``-ped over them, so one pass covers the
@@ -380,17 +398,10 @@ def _bricked(alpha, pad, brick, march) -> tuple[Array, Array]:
     group body is checkpointed, so reverse mode keeps brick indices, not windows.
     """
     shape = alpha.shape
-    n_bricks = tuple(-(-s // brick) for s in shape)
+    n_bricks = active.shape
     aligned = tuple(nb * brick for nb in n_bricks)
     extra = tuple(a - s for a, s in zip(aligned, shape, strict=True))
     source = jnp.pad(alpha, tuple((p, p + e) for p, e in zip(pad, extra, strict=True)))
-    blocks = jnp.pad(alpha, tuple((0, e) for e in extra)).reshape(
-        n_bricks[0], brick, n_bricks[1], brick, n_bricks[2], brick)
-    occupied = jnp.any(blocks > 0, axis=(1, 3, 5))
-    reach = tuple(-(-p // brick) for p in pad)
-    active = lax.reduce_window(
-        occupied, False, lax.bitwise_or, tuple(2 * r + 1 for r in reach), (1, 1, 1),
-        tuple((r, r) for r in reach))
     total = math.prod(n_bricks)
     group = _brick_group(brick, total)
     n_groups = -(-total // group)
@@ -564,8 +575,10 @@ def lao(
             march only bricks with opacity within reach; the others get AO = 1
             without any work. Results and gradients equal the unbricked path (the
             skipped bricks' gradient w.r.t. ``alpha`` is one FFT convolution). It
-            pays on sparse volumes; on dense ones it costs more than it saves
-            (``python -m benchmarks.run lao`` measures both).
+            pays on sparse volumes; when more than half of the bricks are active
+            the whole volume is marched instead (decided at run time), since
+            bricks then cost more than they save (``python -m benchmarks.run lao``
+            measures both).
         max_radius: static upper bound on ``radius`` (voxels), which sets the zero
             padding (``ceil(max_radius) + 1`` voxels per side) and the brick halo. By
             default it is ``radius`` when that is a concrete number, and the volume
@@ -657,21 +670,32 @@ def lao(
     pad = tuple(e if bound is None else min(e, math.ceil(bound) + 1) for e in extent)
 
     return _lao(alpha, dirs, weights, radius, offset, pad=pad, samples=samples,
-                correction=opacity_correction, brick_size=brick_size)
+                correction=opacity_correction, brick_size=brick_size,
+                max_active=_MAX_ACTIVE_FRACTION)
 
 
 @eqx.filter_jit
-def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, brick_size):
+def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, brick_size,
+         max_active):
     """The validated computation, compiled once per shape and static options."""
     def march(source, shape):
         return _march(source, pad, shape, dirs, weights, radius, offset, samples, correction)
 
+    def dense(alpha):
+        return march(jnp.pad(alpha, tuple((p, p) for p in pad)), alpha.shape)
+
     if brick_size is None:
-        source = jnp.pad(alpha, tuple((p, p) for p in pad))
-        return march(source, alpha.shape)
-    ao, skipped = _bricked(alpha, pad, brick_size, march)
-    return ao + _skipped_gradient(pad, samples, correction, skipped, alpha, dirs, weights,
-                                  radius, offset)
+        return dense(alpha)
+
+    def sparse(alpha):
+        ao, skipped = _bricked(alpha, active, pad, brick_size, march)
+        return ao + _skipped_gradient(pad, samples, correction, skipped, alpha, dirs,
+                                      weights, radius, offset)
+
+    # grouped bricks cost about 1.7x the dense march per brick (measured on CPU), so
+    # bricks pay only when fewer than about 60% of them are active
+    active = _active_bricks(alpha, pad, brick_size)
+    return lax.cond(jnp.mean(active) <= max_active, sparse, dense, alpha)
 
 
 class LocalAmbientOcclusion(eqx.Module):
