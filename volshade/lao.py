@@ -57,10 +57,10 @@ available through the custom VJP; ``directions`` are not differentiated.
 **Bricks** (``brick_size``): bricks with no opacity within reach get AO = 1 and
 are not marched; the active ones are compacted and marched in groups, ``vmap``-ped
 over their padded windows. When more than half are active the plain march is
-used instead (``lax.cond``; under ``vmap`` both branches run). Their gradient w.r.t. the opacity is not zero (opacity
-added near an empty brick would darken it); at zero opacity it is a fixed kernel,
-applied in the backward pass as one FFT convolution, so bricked gradients equal
-unbricked ones.
+used instead (``lax.cond``; under ``vmap`` both branches run). The skipped
+bricks' gradient w.r.t. the opacity is not zero (opacity added near an empty
+brick would darken it); at zero opacity it is a fixed kernel, applied in the
+backward pass as one FFT convolution, so bricked gradients equal unbricked ones.
 """
 
 import functools
