@@ -312,6 +312,25 @@ def test_bricked_gradient_through_skipped_bricks(correction):
         np.testing.assert_allclose(float(g_brick[k]), float(g_full[k]), rtol=1e-12)
 
 
+@pytest.mark.parametrize("shape, radius", [((8, 48, 48), 12.0), ((8, 8, 8), 12.0)])
+def test_bricked_gradient_when_the_radius_exceeds_an_axis(shape, radius):
+    # the padding is capped at the extent along the short axes, so some sample offsets
+    # fall beyond it: they reach no voxel and must not enter the skipped-brick kernel
+    alpha = jnp.zeros(shape)
+    if shape[1] > 8:
+        alpha = alpha.at[2:5, 1:4, 1:4].set(0.6)
+    target = jnp.asarray(np.random.default_rng(19).normal(size=shape))
+    dirs = vdirs.fibonacci(9)
+
+    def f(a, brick):
+        return jnp.sum(target * lao(a, directions=dirs, radius=radius, offset=0.5, samples=12,
+                                    brick_size=brick))
+
+    grad = jax.jit(jax.grad(f), static_argnums=1)
+    np.testing.assert_allclose(np.asarray(grad(alpha, 8)), np.asarray(grad(alpha, None)),
+                               rtol=0, atol=1e-12)
+
+
 def test_dense_volume_falls_back_to_the_plain_march():
     alpha = _random_alpha((12, 12, 12), 18)
     lao_module = sys.modules["volshade.lao"]

@@ -468,7 +468,12 @@ def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
     scale = suffix.reshape(-1)[:, None] * weights[None]
     kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), cotangent.dtype)
     for corner, weight in _corner_weights(tuple(frac[..., ax] for ax in range(3))):
-        where = tuple((base[..., ax] + corner[ax]).reshape(-1) for ax in range(3))
+        # offsets beyond the padding reach no voxel; send them past the end to be
+        # dropped (a negative index would wrap around, like NumPy's)
+        where = [(base[..., ax] + corner[ax]).reshape(-1) for ax in range(3)]
+        outside = functools.reduce(jnp.logical_or, [(w < 0) | (w > 2 * p)
+                                                    for w, p in zip(where, pad, strict=True)])
+        where = tuple(jnp.where(outside, 2 * p + 1, w) for w, p in zip(where, pad, strict=True))
         kernel = kernel.at[where].add((scale * weight).reshape(-1), mode="drop")
     kappa = step if correction else 1
     d_alpha = -(kappa / samples) * fftconvolve(
@@ -580,10 +585,11 @@ def lao(
             bricks then cost more than they save (``python -m benchmarks.run lao``
             measures both).
         max_radius: static upper bound on ``radius`` (voxels), which sets the zero
-            padding (``ceil(max_radius) + 1`` voxels per side) and the brick halo. By
-            default it is ``radius`` when that is a concrete number, and the volume
-            extent when ``radius`` is traced (exact for any radius, but the padded
-            copy is then 27 volumes; pass ``max_radius`` when fitting the radius).
+            padding (``ceil(max_radius) + 1`` voxels per side, at most the extent,
+            brick-aligned when bricked) and the brick halo. By default it is
+            ``radius`` when that is a concrete number, and the volume extent when
+            ``radius`` is traced (exact for any radius, but the padded copy is then
+            27 volumes or more; pass ``max_radius`` when fitting the radius).
             Eager calls with a new concrete ``radius`` and no ``max_radius``
             recompile, since the padding follows the radius.
 
@@ -692,8 +698,8 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
         return ao + _skipped_gradient(pad, samples, correction, skipped, alpha, dirs,
                                       weights, radius, offset)
 
-    # grouped bricks cost about 1.7x the dense march per brick (measured on CPU), so
-    # bricks pay only when fewer than about 60% of them are active
+    # grouped bricks cost about 1.7x the plain march per brick (measured on CPU), so
+    # they pay only when well under 60% of them are active: the cut is at half
     active = _active_bricks(alpha, pad, brick_size)
     return lax.cond(jnp.mean(active) <= max_active, sparse, dense, alpha)
 
