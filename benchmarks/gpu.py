@@ -6,10 +6,12 @@ Needs a GPU (the CPU backend of the same process computes the agreement
 references). Cases:
 
 * agreement: small render (Phong + LAO ambient + importance composition), LAO,
-  colour-bleeding obscurance, saliency and importance compositing, each computed on
-  the GPU and on the CPU in this process; max |GPU - CPU| in float32;
+  bricked LAO and its gradient, colour-bleeding obscurance, saliency and importance
+  compositing, each computed on the GPU and on the CPU in this process; max
+  |GPU - CPU| in float32;
 * LAO (issue 3): 512^3, L = 54, M = 50, R = 50: trilinear samples per second, forward
-  and forward + gradient w.r.t. opacity and radius (``benchmarks.lao.run_gpu``);
+  and forward + gradient w.r.t. opacity and radius (``benchmarks.lao.run_gpu``); and
+  bricked against plain on a sparse 256^3 ball;
 * obscurance (issue 4): 256^3, 162 directions, d_max 64 (goal <= 0.25 s on an H100);
 * composition (issue 5): 512^2 rays x 512 samples, standard and importance-aware,
   forward (goal <= 10 ms on an H100) and forward + gradient, scan unrolled 1 and 8;
@@ -44,12 +46,22 @@ def _agreement() -> list[dict]:
                      ambient="lao", lao=LocalAmbientOcclusion(6.0, directions=16, samples=8),
                      composition="importance", importance=Importance(intensity=3.0),
                      focus=Focus(radius=0.3))
+    sparse = jnp.zeros((48, 48, 48), jnp.float32).at[8:20, 10:18, 30:40].set(
+        jnp.asarray(rng.random((12, 8, 10)), jnp.float32))
+    weights = jnp.asarray(rng.normal(size=sparse.shape), jnp.float32)
+
+    def bricked(a):
+        return lao(a, directions=16, radius=6.0, samples=8, brick_size=8)
+
     c = jnp.asarray(rng.random((1000, 64, 3)), jnp.float32)
     a = jnp.asarray(rng.random((1000, 64)) ** 3, jnp.float32)
     i = jnp.asarray(rng.normal(size=(1000, 64)) * 20, jnp.float32)
     cases = {
         "render phong+lao+importance 48^3 -> 64^2": lambda: eqx.filter_jit(vs.render)(scene, cam),
         "lao 32^3 L16 M8": lambda: lao(alpha, directions=16, radius=6.0, samples=8),
+        "lao bricked 48^3 sparse": lambda: bricked(sparse),
+        "lao bricked gradient w.r.t. alpha": lambda: jax.grad(
+            lambda a: jnp.sum(weights * bricked(a)))(sparse),
         "obscurance+bleeding 32^3 42 dirs": lambda: obscurance(
             alpha, directions=icosphere(1), d_max=16.0,
             colors=jnp.stack([alpha, 1 - alpha, alpha**2], -1)),
@@ -81,6 +93,20 @@ def run(quick: bool) -> dict:
     t = time_fn(obs, density, jnp.float32(64.0), repeats=3)
     rows.append({"case": f"obscurance {n}^3 162 dirs d_max 64", "median_s": t["median_s"],
                  "compile_s": t["first_call_s"] - t["median_s"]})
+
+    # LAO bricks on a sparse volume (a ball filling about 1% of it): bricked / plain.
+    n = 128 if quick else 256
+    x = jnp.linspace(-1.0, 1.0, n, dtype=jnp.float32)
+    r = jnp.sqrt((x[:, None, None] - 0.4) ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)
+    ball = jnp.where(r < 0.25, 0.8, 0.0).astype(jnp.float32)
+    med = {}
+    for brick in (None, 32):
+        fn = jax.jit(lambda a, b=brick: lao(a, directions=16, radius=16.0, samples=16,
+                                            brick_size=b))
+        med[brick] = time_fn(fn, ball, repeats=3)["median_s"]
+        rows.append({"case": f"lao sparse {n}^3 L16 M16 R16 bricks {brick}",
+                     "median_s": med[brick]})
+    ratios["lao bricked speed-up on the sparse ball"] = med[None] / med[32]
 
     # Composition: 512^2 rays x 512 samples.
     side, samples = (256, 256) if quick else (512, 512)
