@@ -138,6 +138,19 @@ def test_no_nan_gradients_on_edge_volumes(shading):
     for vol in (jnp.zeros((5, 5, 5)), jnp.ones((5, 5, 5)), corner, jnp.ones((1, 1, 1))):
         for leaf in jax.tree.leaves(image_and_derivatives(vol, tf)):
             assert np.all(np.isfinite(leaf))
+            # bounded too: a constant volume's rounding noise once became unit normals
+            # with derivatives of 1e16
+            assert np.all(np.abs(leaf) < 1e3)
+
+
+def test_constant_volumes_have_no_normal():
+    # whatever the constant value, an opaque constant volume has no gradient, so Phong
+    # gives the ambient term only (not random full-strength normals)
+    tf = _constant_tf(1.0)
+    cam = Camera.orbit(azimuth=30.0, elevation=20.0, image_shape=(6, 6))
+    images = [march(jnp.full((6, 6, 6), v), tf, cam, shading="phong") for v in (0.0, 0.3, 1.0)]
+    for img in images[1:]:
+        np.testing.assert_array_equal(np.asarray(img), np.asarray(images[0]))
 
 
 def test_fully_opaque_volume_shows_its_colour():

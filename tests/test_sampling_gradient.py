@@ -98,3 +98,16 @@ def test_regression_gradient_dtype_jit_vmap_grad_and_errors():
         regression_kernel(3, weighting="gauss")
     with pytest.raises(ValueError, match="spacing"):
         regression_gradient(vol, spacing=(1.0, -1.0, 1.0))
+
+
+@pytest.mark.parametrize("size", [3, 5])
+def test_regression_gradient_is_exactly_zero_where_the_volume_is_flat(size):
+    # two flat regions of unrelated values: every voxel whose neighbourhood lies in one
+    # region gets an exactly zero gradient (a convolution would leave rounding noise)
+    vol = jnp.full((12, 12, 12), 0.3).at[6:].set(0.7123456789)
+    g = regression_gradient(vol, size=size)
+    h = size // 2
+    assert np.all(np.asarray(g[: 6 - h]) == 0) and np.all(np.asarray(g[6 + h:]) == 0)
+    assert float(jnp.min(jnp.abs(g[6 - h:6 + h, ..., 0]))) > 0
+    g32 = regression_gradient(jnp.full((5, 5, 5), 0.1, jnp.float32), size=size)
+    assert np.all(np.asarray(g32) == 0)

@@ -13,10 +13,11 @@ neighbour $k$. The obscurance paper (Ruiz et al. 2008, eq. 4) uses the same sums
 with the unnormalised weights $w(k) = |\mathbf{x}(k)|$ on a $5^3$ cube; the
 normalisation above only rescales each component and makes the estimate exact
 for linear fields, whatever the weights. Volumes are extended by edge
-replication at the border.
+replication at the border. The sums are taken over central differences
+$f(\mathbf{x} + k) - f(\mathbf{x} - k)$, so a constant neighbourhood gives an
+exactly zero gradient.
 """
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -89,17 +90,30 @@ def regression_gradient(
     """
     where = "volshade.gradient.regression_gradient"
     volume = _checks.volume(volume, "volume", where)
-    kernel = jnp.asarray(regression_kernel(size, spacing=spacing, weighting=weighting),
-                         dtype=volume.dtype)
+    kernel = regression_kernel(size, spacing=spacing, weighting=weighting)
     half = size // 2
     padded = jnp.pad(volume, half, mode="edge")
-    # Correlation (not convolution): conv_general_dilated does not flip kernels.
-    out = jax.lax.conv_general_dilated(
-        padded[None, None], kernel[:, None], window_strides=(1, 1, 1), padding="VALID",
-        dimension_numbers=("NCDHW", "OIDHW", "NCDHW"),
-        precision=jax.lax.Precision.HIGHEST,
-    )[0]
-    return jnp.moveaxis(out, 0, -1)
+    shape = volume.shape
+
+    def shifted(k):
+        return padded[tuple(slice(half + k[ax], half + k[ax] + shape[ax]) for ax in range(3))]
+
+    # The kernels are odd (K_i(-k) = -K_i(k)), so each component is summed over
+    # central differences f(x + k) - f(x - k): exactly 0 wherever the neighbourhood
+    # is constant. A convolution's rounding leaves noise there instead, which
+    # normalising turns into random unit normals with huge derivatives.
+    components = []
+    for i in range(3):
+        total = None
+        for k in np.ndindex(*kernel.shape[1:]):
+            k = tuple(int(c) - half for c in k)
+            weight = float(kernel[(i, *(c + half for c in k))])
+            if k[i] <= 0 or weight == 0:
+                continue
+            term = weight * (shifted(k) - shifted(tuple(-c for c in k)))
+            total = term if total is None else total + term
+        components.append(total)
+    return jnp.stack(components, axis=-1)
 
 
 def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = False
