@@ -400,6 +400,8 @@ def test_bad_values_raise_under_jit():
         jax.block_until_ready(f(alpha.at[0, 0, 0].set(jnp.nan), 4.0, 1.0))
     with pytest.raises(Exception, match="max_radius"):
         jax.block_until_ready(f(alpha, 9.0, 1.0))
+    with pytest.raises(Exception, match="`radius` finite"):
+        jax.block_until_ready(f(alpha, jnp.nan, 1.0))
     g = jax.jit(lambda w: lao(alpha, directions=dirs, radius=3.0, weights=w))
     with pytest.raises(Exception, match="weights"):
         jax.block_until_ready(g(jnp.asarray([1.0, -1.0, 0.0, 0.0])))

@@ -188,8 +188,9 @@ def test_errors():
         saliency(jnp.zeros((4, 4)))
     with pytest.raises(ValueError, match="size"):
         saliency(v, size=4)
-    with pytest.raises(Exception, match="NaN"):
-        saliency(v.at[0, 0, 0].set(jnp.inf))
+    for fn in (saliency, jax.jit(saliency)):  # named for saliency, also under jit
+        with pytest.raises(Exception, match=r"saliency: `obscurance` contains NaN"):
+            fn(v.at[0, 0, 0].set(jnp.inf))
     with pytest.raises(ValueError, match="same"):
         viewpoint_saliency(v, jnp.zeros((4, 4, 5)), VIEWS)
     with pytest.raises(ValueError, match="unknown visibility"):

@@ -1,9 +1,13 @@
+import re
+import sys
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import volshade as vs
 import volshade.scene as scene_module
 from volshade.camera import Camera
 from volshade.importance import Focus, Importance
@@ -39,16 +43,18 @@ def test_effects_that_are_off_are_not_traced(monkeypatch):
     real = scene_module.AMBIENT["volume"]
     monkeypatch.setitem(scene_module.AMBIENT, "volume",
                         lambda sc: calls.append("ambient") or real(sc))
+    render_module = sys.modules["volshade.render"]
+    real_gradient = render_module.regression_gradient
+    monkeypatch.setattr(render_module, "regression_gradient",
+                        lambda *a, **k: calls.append("gradient") or real_gradient(*a, **k))
     cam = Camera.orbit(image_shape=(3, 3))
     off = Scene(volume=_volume(), transfer=preset("grey"))
-    jaxpr_off = str(jax.make_jaxpr(lambda s: render(s, cam))(off))
-    assert calls == []
-    assert "conv_general_dilated" not in jaxpr_off  # no gradient volume without Phong
+    jax.make_jaxpr(lambda s: render(s, cam))(off)
+    assert calls == []  # no ambient volume, no gradient volume without Phong
     on = Scene(volume=_volume(), transfer=preset("grey"), shading="phong", ambient="volume",
                ambient_volume=jnp.ones((6, 6, 6)))
-    jaxpr_on = str(jax.make_jaxpr(lambda s: render(s, cam))(on))
-    assert calls == ["ambient"]
-    assert "conv_general_dilated" in jaxpr_on
+    jax.make_jaxpr(lambda s: render(s, cam))(on)
+    assert sorted(calls) == ["ambient", "gradient"]
 
 
 def test_scene_is_a_pytree_for_jit_vmap_grad():
@@ -149,3 +155,22 @@ def test_fitting_leaves_get_gradients_without_recompiling():
                      (s.lao.radius + 0.5, 2 * s.importance.intensity))
     loss(s2)
     assert loss._cached._cache_size() == 1
+
+
+@pytest.mark.parametrize("jit", [False, True], ids=["eager", "jit"])
+def test_non_finite_parameters_are_refused_by_name(jit):
+    vol = vs.data.phantom("shells", shape=12)
+    tf = vs.transfer.preset("shells")
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(6, 6))
+    render = eqx.filter_jit(vs.render) if jit else vs.render
+    cases = [
+        (vs.Scene(volume=vol, transfer=tf, shading="phong", phong=vs.Phong(diffuse=jnp.nan)),
+         cam, "scene.phong.diffuse"),
+        (vs.Scene(volume=vol, transfer=tf, background=(jnp.inf, 0.0, 0.0)), cam,
+         "scene.background"),
+        (vs.Scene(volume=vol, transfer=tf),
+         vs.Camera.orbit(azimuth=jnp.nan, elevation=20, image_shape=(6, 6)), "camera.eye"),
+    ]
+    for scene, camera, name in cases:
+        with pytest.raises(Exception, match=re.escape(f"`{name}` contains NaN or inf")):
+            jax.block_until_ready(render(scene, camera))

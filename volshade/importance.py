@@ -239,8 +239,10 @@ def sample_importance(
     scalars = {"intensity": intensity, "extinction": extinction,
                "gradient_magnitude": gradient_magnitude, "optical_depth": optical_depth}
     vectors = {"normal": normal, "view": view, "light": light}
-    scalars = {k: _checks.as_float_array(v, k, where) for k, v in scalars.items() if v is not None}
-    vectors = {k: _checks.as_float_array(v, k, where) for k, v in vectors.items() if v is not None}
+    scalars = {k: _checks.finite(_checks.as_float_array(v, k, where), k, where)
+               for k, v in scalars.items() if v is not None}
+    vectors = {k: _checks.finite(_checks.as_float_array(v, k, where), k, where)
+               for k, v in vectors.items() if v is not None}
     for k, v in vectors.items():
         if v.ndim < 1 or v.shape[-1] != 3:
             raise ValueError(f"{where}: `{k}` must be (..., 3) in (d, h, w) order, got {v.shape}.")
@@ -381,6 +383,7 @@ def focus_weights(
     center = _checks.as_float_array(center, "center", where)
     if center.shape != (2,):
         raise ValueError(f"{where}: `center` must be (row, column), got shape {center.shape}.")
+    center = _checks.finite(center, "center", where)
     radius = _checks.as_float_array(radius, "radius", where)
     if radius.ndim != 0:
         raise ValueError(f"{where}: `radius` must be a scalar (pixels), got shape {radius.shape}.")
@@ -388,8 +391,8 @@ def focus_weights(
     outside = _checks.as_float_array(outside, "outside", where)
     if dtype is None:
         dtype = jnp.result_type(center, radius, inside, outside)
-    radius = eqx.error_if(radius.astype(dtype), radius <= 0,
-                          f"{where}: `radius` must be > 0 pixels.")
+    radius = eqx.error_if(radius.astype(dtype), ~(radius > 0) | ~jnp.isfinite(radius),
+                          f"{where}: `radius` must be a finite number > 0 pixels.")
     rows, cols = jnp.arange(h), jnp.arange(w)
     dr = rows.astype(dtype)[:, None] - center[0].astype(dtype)
     dc = cols.astype(dtype)[None, :] - center[1].astype(dtype)

@@ -646,11 +646,11 @@ def lao(
                              f"({max_radius}); raise `max_radius`.")
     radius = _scalar(radius, "radius", dtype)
     offset = _scalar(offset, "offset", dtype)
+    alpha = eqx.error_if(alpha, ~(offset >= 0) | ~jnp.isfinite(radius),
+                         f"{_WHERE}: `offset` must be >= 0 and `radius` finite (voxels).")
     alpha = eqx.error_if(alpha, ~(radius > offset),
                          f"{_WHERE}: `radius` must be > `offset`; increase the radius or "
                          f"lower the offset.")
-    alpha = eqx.error_if(alpha, ~(offset >= 0) | ~jnp.isfinite(radius),
-                         f"{_WHERE}: `offset` must be >= 0 and `radius` finite (voxels).")
     if max_radius is not None:
         alpha = eqx.error_if(alpha, radius > max_radius,
                              f"{_WHERE}: `radius` exceeds `max_radius` ({max_radius}); "

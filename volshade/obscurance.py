@@ -532,7 +532,8 @@ def threshold(
         Array([0. , 0.5, 1. ], dtype=float32)
     """
     where = "volshade.obscurance.threshold"
-    obscurance = _checks.as_float_array(obscurance, "obscurance", where)
+    obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
+                                "obscurance", where)
     dtype = obscurance.dtype
     if isinstance(low, int | float) and isinstance(high, int | float) and low > high:
         raise ValueError(f"{where}: `low` must be <= `high`, got low={low}, high={high}.")
@@ -540,7 +541,9 @@ def threshold(
     if low.ndim or high.ndim:
         raise ValueError(f"{where}: `low` and `high` must be scalars, got shapes "
                          f"{low.shape} and {high.shape}.")
-    low = eqx.error_if(low, low > high, f"{where}: `low` must be <= `high`.")
+    low = eqx.error_if(low, ~(low <= high), f"{where}: `low` must be <= `high` (both finite).")
+    high = eqx.error_if(high, ~jnp.isfinite(high) | ~jnp.isfinite(low),
+                        f"{where}: `low` and `high` must be finite.")
     ramp = safe_div(obscurance - low, high - low)
     out = jnp.where(obscurance < low, jnp.zeros_like(ramp), ramp)
     return jnp.where(obscurance >= high, jnp.ones_like(ramp), out)
@@ -590,7 +593,7 @@ def obscurance_shading(
         Array([0.5], dtype=float32)
     """
     where = "volshade.obscurance.obscurance_shading"
-    normal = _checks.as_float_array(normal, "normal", where)
+    normal = _checks.finite(_checks.as_float_array(normal, "normal", where), "normal", where)
     dtype = normal.dtype
     if normal.ndim < 1 or normal.shape[-1] != 3:
         raise ValueError(f"{where}: `normal` must have shape (..., 3), got {normal.shape}.")
@@ -600,7 +603,8 @@ def obscurance_shading(
         if vec.ndim < 1 or vec.shape[-1] != 3:
             raise ValueError(f"{where}: `{name}` must have shape (3,) or (..., 3), "
                              f"got {vec.shape}.")
-    obscurance = jnp.asarray(obscurance, dtype)
+    obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
+                                "obscurance", where).astype(dtype)
     batch = normal.shape[:-1]
     light = jnp.broadcast_to(light, normal.shape)
     view = jnp.broadcast_to(view, normal.shape)

@@ -101,7 +101,8 @@ def saliency(
         1.0
     """
     where = "volshade.saliency.saliency"
-    arr = _checks.as_float_array(obscurance, "obscurance", where)
+    arr = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
+                         "obscurance", where)
     if arr.ndim == 4:
         _checks.check_ndim(arr[..., 0], 3, "obscurance", where, "(D, H, W) or (D, H, W, C)")
         channels = [arr[..., c] for c in range(arr.shape[-1])]
@@ -110,9 +111,8 @@ def saliency(
     else:
         raise ValueError(f"{where}: `obscurance` must have shape (D, H, W) or (D, H, W, C), "
                          f"got {arr.shape}; for a batch, use `jax.vmap`.")
-    arr = _checks.finite(arr, "obscurance", where)
-    grads = [regression_gradient(ch - jnp.min(ch), spacing=spacing, size=size,
-                                 weighting=weighting) for ch in channels]
+    grads = [regression_gradient(ch, spacing=spacing, size=size, weighting=weighting)
+             for ch in channels]
     return gradient_magnitude(jnp.concatenate(grads, axis=-1), scaled=True)
 
 
@@ -386,7 +386,10 @@ def opacity_factor(
     :func:`modulate_opacity`). The renderer multiplies interpolated opacities by it.
     """
     dtype = saliency.dtype
-    threshold = jnp.asarray(threshold, dtype)
+    threshold = _checks.as_float_array(threshold, "threshold", "volshade.opacity_factor")
+    threshold = eqx.error_if(threshold.astype(dtype), ~jnp.isfinite(threshold),
+                             "volshade.opacity_factor: `threshold` must be a finite saliency "
+                             "level (0.2 in the paper).")
     factor = saliency if multiply else jnp.ones_like(saliency)
     if boost_top is not None:
         top = saliency >= 1 - jnp.asarray(boost_top, dtype)

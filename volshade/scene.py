@@ -13,6 +13,7 @@ recompiles.
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from . import _checks
@@ -144,6 +145,24 @@ class Scene(eqx.Module):
                 "shading": self.shading, "composition": self.composition}
 
 
+def _finite_parameters(scene: Scene, camera: Camera) -> tuple[Scene, Camera]:
+    """Refuse NaN/inf in any floating-point leaf of the scene or camera (naming it), so a
+    bad parameter raises instead of rendering a NaN image. The volume has its own check."""
+
+    def checked(tree, prefix):
+        def check(path, leaf):
+            if not eqx.is_inexact_array(leaf) or leaf is scene.volume:
+                return leaf
+            name = prefix + jax.tree_util.keystr(path)
+            return eqx.error_if(leaf, ~jnp.all(jnp.isfinite(leaf)),
+                                f"volshade.render: `{name}` contains NaN or inf; every scene "
+                                f"and camera parameter must be finite.")
+
+        return jax.tree_util.tree_map_with_path(check, tree)
+
+    return checked(scene, "scene"), checked(camera, "camera")
+
+
 def render(scene: Scene, camera: Camera) -> Float[Array, "H W 4"]:
     """Render ``scene`` from ``camera``, computing only the effects the scene names.
 
@@ -154,6 +173,7 @@ def render(scene: Scene, camera: Camera) -> Float[Array, "H W 4"]:
         >>> scene = Scene(volume=vs.data.phantom("shells"), transfer=vs.transfer.preset("shells"))
         >>> image = render(scene, Camera.orbit(azimuth=30, elevation=20))
     """
+    scene, camera = _finite_parameters(scene, camera)
     ambient = AMBIENT[scene.ambient](scene)
     opacity_scale = MODULATION[scene.modulation](scene)
     focus = None if scene.focus is None else scene.focus.weights(camera.image_shape)

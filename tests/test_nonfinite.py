@@ -1,0 +1,44 @@
+"""NaN and inf are refused by the display and importance helpers, eagerly and under jit."""
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from volshade.importance import Importance, focus_weights, sample_importance
+from volshade.obscurance import obscurance_shading, threshold
+from volshade.saliency import modulate_opacity, opacity_factor
+
+NAN = jnp.asarray([0.2, jnp.nan, 0.4])
+INF = jnp.asarray([0.2, jnp.inf, 0.4])
+
+CASES = {
+    "threshold": (lambda x: threshold(x, 0.2, 0.8), "obscurance"),
+    "threshold bounds": (lambda x: threshold(jnp.ones(3), x[1], 0.8), "finite"),
+    "obscurance_shading normal": (
+        lambda x: obscurance_shading(jnp.stack([x, x, x], -1), (0, 0, 1), (1, 0, 0), jnp.ones(3)),
+        "normal"),
+    "obscurance_shading obscurance": (
+        lambda x: obscurance_shading(jnp.ones((3, 3)), (0, 0, 1), (1, 0, 0), x), "obscurance"),
+    "sample_importance": (lambda x: sample_importance(Importance(intensity=1.0), intensity=x),
+                          "intensity"),
+    "focus_weights center": (lambda x: focus_weights((4, 4), center=x[:2][::-1], radius=1.0),
+                             "center"),
+    "focus_weights radius": (lambda x: focus_weights((4, 4), center=(1.0, 1.0), radius=x[1]),
+                             "radius"),
+    "opacity_factor threshold": (lambda x: opacity_factor(jnp.ones((2, 2, 2)), threshold=x[1]),
+                                 "threshold"),
+    "modulate_opacity threshold": (
+        lambda x: modulate_opacity(jnp.ones((2, 2, 2)), jnp.ones((2, 2, 2)), threshold=x[1]),
+        "threshold"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("bad", [NAN, INF], ids=["nan", "inf"])
+@pytest.mark.parametrize("jit", [False, True], ids=["eager", "jit"])
+def test_non_finite_input_is_refused(name, bad, jit):
+    fn, argument = CASES[name]
+    fn = jax.jit(fn) if jit else fn
+    with pytest.raises(Exception, match=argument):
+        jax.block_until_ready(fn(bad))
+    fn(jnp.asarray([0.2, 0.3, 0.4]))  # the same call with finite values runs
