@@ -1,0 +1,87 @@
+"""jit, vmap and grad of the public kernels and parameter modules not covered in their
+own modules' tests: jit equals eager, vmap equals a loop, and (where differentiable)
+grad equals central finite differences in float64."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import check_grad_fd
+
+import volshade as vs
+from volshade.directions import icosphere
+
+RNG = np.random.default_rng(42)
+SHAPE = (8, 9, 7)
+ALPHA = jnp.asarray(RNG.uniform(0, 1, SHAPE) ** 3)
+VOLUME = jnp.asarray(RNG.uniform(0, 1, SHAPE))
+VIEWS = icosphere(0)
+VIEWS4 = np.asarray(VIEWS[:4])  # concrete: directions set the sweep
+TF = vs.transfer.preset("grey")
+
+
+def _smooth(seed):
+    """A smooth field (no ties, no flat regions) on SHAPE."""
+    g = np.stack(np.meshgrid(*[np.linspace(0, 1, s) for s in SHAPE], indexing="ij"))
+    return jnp.asarray(0.5 + 0.3 * np.sin(3 * g[0] + seed) * np.cos(2 * g[1] - g[2] * seed))
+
+
+# name: (function of one array, two inputs for vmap, differentiable)
+CASES = {
+    "LocalAmbientOcclusion(radius)": (
+        lambda r: vs.LocalAmbientOcclusion(r, directions=6, samples=5, max_radius=5.0)(ALPHA),
+        (jnp.asarray(3.3), jnp.asarray(4.1)), True),
+    "occluder_distances": (
+        lambda d: vs.occluder_distances(d, directions=VIEWS4), (VOLUME, VOLUME ** 2), False),
+    "threshold": (lambda x: vs.threshold(x, 0.2, 0.8), (VOLUME * 0.5 + 0.25, _smooth(1)), True),
+    "obscurance_shading": (
+        lambda n: vs.obscurance_shading(n, (0.3, 0.2, 0.9), (0.9, 0.1, 0.3), VOLUME, k_s=0.5,
+                                        shininess=8.0),
+        (jnp.stack([_smooth(1), _smooth(2), _smooth(3)], -1),
+         jnp.stack([_smooth(4), _smooth(5), _smooth(6)], -1)), True),
+    "ObscuranceParams(d_max)": (
+        lambda dm: vs.ObscuranceParams(d_max=dm, low=0.1, high=0.9)(VOLUME, TF),
+        (jnp.asarray(3.5), jnp.asarray(6.0)), True),
+    "saliency": (vs.saliency, (_smooth(1), _smooth(2)), True),
+    "projected_area": (lambda a: vs.projected_area(a, VIEWS), (ALPHA, ALPHA ** 2), False),
+    "most_salient_view": (lambda s: vs.most_salient_view(s, ALPHA, VIEWS), (VOLUME, ALPHA),
+                          False),
+    "least_salient_view": (lambda s: vs.least_salient_view(s, ALPHA, VIEWS), (VOLUME, ALPHA),
+                           False),
+    "modulate_opacity": (lambda a: vs.modulate_opacity(a, _smooth(1), threshold=0.3),
+                         (ALPHA * 0.9, ALPHA ** 2), True),
+    "SaliencyModulation(d_max)": (
+        lambda dm: vs.SaliencyModulation(d_max=dm, threshold=0.1, level=0, size=3)(VOLUME, TF),
+        (jnp.asarray(3.5), jnp.asarray(6.0)), True),
+    "sample_importance(Importance)": (
+        lambda x: vs.sample_importance(vs.Importance(intensity=1.5, extinction=0.5),
+                                       intensity=x, extinction=x ** 2)[0],
+        (VOLUME, _smooth(1)), True),
+    "focus_weights(center)": (
+        lambda c: vs.focus_weights((6, 7), center=c, radius=2.5, kind="gaussian"),
+        (jnp.asarray([2.0, 3.5]), jnp.asarray([3.1, 1.2])), True),
+    "Focus(radius)": (lambda r: vs.Focus(radius=r).weights((6, 7)),
+                      (jnp.asarray(0.3), jnp.asarray(0.45)), True),
+    "IntervalFeature": (lambda v: vs.IntervalFeature(0.2, 0.7).opacity(v, TF),
+                        (VOLUME, _smooth(1)), False),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_jit_equals_eager_and_vmap_equals_loop(name):
+    fn, (x1, x2), _ = CASES[name]
+    np.testing.assert_allclose(np.asarray(jax.jit(fn)(x1)), np.asarray(fn(x1)), rtol=1e-12,
+                               atol=1e-12)
+    batched = jax.vmap(fn)(jnp.stack([x1, x2]))
+    for k, x in enumerate((x1, x2)):
+        np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(fn(x)), rtol=1e-12,
+                                   atol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(k for k, v in CASES.items() if v[2]))
+def test_grad_matches_finite_differences(name):
+    fn, (x1, _), _ = CASES[name]
+    out = fn(x1)
+    weights = jnp.asarray(np.random.default_rng(7).normal(size=np.shape(out)))
+    g = check_grad_fd(jax.jit(lambda x: jnp.sum(weights * fn(x))), x1, rtol=1e-4)
+    assert np.all(np.isfinite(np.asarray(g))) and float(jnp.max(jnp.abs(g))) > 0
