@@ -363,12 +363,14 @@ def _march(source, pad, shape, directions, weights, radius, offset, samples,
 # --------------------------------------------------------------------------- bricks
 
 
-def _brick_group(brick: int, n_bricks: int) -> int:
+def _brick_group(brick: int, window: tuple[int, int, int], n_bricks: int) -> int:
     """How many bricks are marched together, vectorised: about $2^{16}$ voxels on a CPU
     (a group's working set then stays in cache; measured best of $2^{16}$, $2^{18}$,
-    $2^{20}$) and $2^{21}$ elsewhere, where one kernel needs that many threads."""
+    $2^{20}$) and $2^{21}$ elsewhere, where one kernel needs that many threads; and
+    never more than $2^{24}$ voxels of padded windows (a halo wide against the brick
+    would otherwise make a group's windows many volumes large)."""
     target = 2**16 if jax.default_backend() == "cpu" else 2**21
-    return max(1, min(n_bricks, target // brick**3))
+    return max(1, min(n_bricks, target // brick**3, 2**24 // math.prod(window)))
 
 
 _MAX_ACTIVE_FRACTION = 0.5
@@ -403,10 +405,10 @@ def _bricked(alpha, active, pad, brick, march) -> tuple[Array, Array]:
     extra = tuple(a - s for a, s in zip(aligned, shape, strict=True))
     source = jnp.pad(alpha, tuple((p, p + e) for p, e in zip(pad, extra, strict=True)))
     total = math.prod(n_bricks)
-    group = _brick_group(brick, total)
+    window = tuple(brick + 2 * p for p in pad)
+    group = _brick_group(brick, window, total)
     n_groups = -(-total // group)
     (index,) = jnp.nonzero(active.reshape(-1), size=n_groups * group, fill_value=total)
-    window = tuple(brick + 2 * p for p in pad)
     out_shape = (brick,) * 3
 
     @jax.checkpoint
