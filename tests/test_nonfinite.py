@@ -42,3 +42,8 @@ def test_non_finite_input_is_refused(name, bad, jit):
     with pytest.raises(Exception, match=argument):
         jax.block_until_ready(fn(bad))
     fn(jnp.asarray([0.2, 0.3, 0.4]))  # the same call with finite values runs
+
+
+def test_integer_importance_weights_are_accepted():
+    imp, _ = sample_importance(Importance(intensity=2), intensity=jnp.ones(3))
+    assert imp.tolist() == [2.0, 2.0, 2.0]

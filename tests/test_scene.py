@@ -171,6 +171,22 @@ def test_non_finite_parameters_are_refused_by_name(jit):
         (vs.Scene(volume=vol, transfer=tf),
          vs.Camera.orbit(azimuth=jnp.nan, elevation=20, image_shape=(6, 6)), "camera.eye"),
     ]
+    nan_float = eqx.tree_at(lambda s: s.phong.diffuse, cases[0][0], float("nan"))
+    cases.append((nan_float, cam, "scene.phong.diffuse"))  # a Python float leaf
     for scene, camera, name in cases:
         with pytest.raises(Exception, match=re.escape(f"`{name}` contains NaN or inf")):
             jax.block_until_ready(render(scene, camera))
+
+
+def test_no_background_importance_is_allowed_with_a_focus():
+    # -inf background importance is "no background" (volshade.composite); outside the
+    # focus (weight 0) importance is off, which must give 0, not 0 * -inf = NaN
+    vol = vs.data.phantom("shells", shape=12)
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))
+    scene = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), composition="importance",
+                     importance=Importance(intensity=2.0, background=-jnp.inf),
+                     focus=Focus(radius=0.2, kind="circular"))
+    image = render(scene, cam)
+    assert np.all(np.isfinite(np.asarray(image)))
+    far = eqx.tree_at(lambda s: s.importance.background, scene, jnp.asarray(-1e30))
+    np.testing.assert_allclose(np.asarray(image), np.asarray(render(far, cam)), atol=1e-12)

@@ -107,7 +107,9 @@ class Importance(eqx.Module):
                 ``self.global_weight`` (focus plus context).
         """
         g = self.global_weight if global_weight is None else jnp.asarray(global_weight)
-        return g * self.background
+        # a zero weight switches importance off (0, not 0 * -inf = NaN for "no background")
+        off = g == 0
+        return jnp.where(off, 0, g * jnp.where(off, 0, self.background))
 
 
 def _leaves(params: Importance) -> dict[str, Array]:
@@ -235,14 +237,24 @@ def sample_importance(
     Example:
         >>> imp, scale = sample_importance(Importance(intensity=5.0), intensity=jnp.ones(8))
     """
-    where = "volshade.sample_importance"
     scalars = {"intensity": intensity, "extinction": extinction,
                "gradient_magnitude": gradient_magnitude, "optical_depth": optical_depth}
     vectors = {"normal": normal, "view": view, "light": light}
-    scalars = {k: _checks.finite(_checks.as_float_array(v, k, where), k, where)
-               for k, v in scalars.items() if v is not None}
-    vectors = {k: _checks.finite(_checks.as_float_array(v, k, where), k, where)
-               for k, v in vectors.items() if v is not None}
+    return _sample_importance(params, scalars, vectors, global_weight, check_finite=True)
+
+
+def _sample_importance(params, scalars, vectors, global_weight, *, check_finite: bool):
+    """:func:`sample_importance` on feature dicts; the renderer passes
+    ``check_finite=False``: its features come from a checked volume, and a run-time
+    check at every step of the march would cost a host round trip on a GPU."""
+    where = "volshade.sample_importance"
+
+    def convert(v, k):
+        v = _checks.as_float_array(v, k, where)
+        return _checks.finite(v, k, where) if check_finite else v
+
+    scalars = {k: convert(v, k) for k, v in scalars.items() if v is not None}
+    vectors = {k: convert(v, k) for k, v in vectors.items() if v is not None}
     for k, v in vectors.items():
         if v.ndim < 1 or v.shape[-1] != 3:
             raise ValueError(f"{where}: `{k}` must be (..., 3) in (d, h, w) order, got {v.shape}.")
@@ -261,7 +273,7 @@ def sample_importance(
     dtype = jnp.result_type(*scalars.values(), *vectors.values())
     scalars = {k: jnp.broadcast_to(v.astype(dtype), batch) for k, v in scalars.items()}
     vectors = {k: jnp.broadcast_to(v.astype(dtype), (*batch, 3)) for k, v in vectors.items()}
-    p = {k: v.astype(dtype) for k, v in _leaves(params).items()}
+    p = {k: jnp.asarray(v).astype(dtype) for k, v in _leaves(params).items()}
 
     total = jnp.zeros(batch, dtype)
     if "intensity" in scalars:

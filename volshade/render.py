@@ -28,7 +28,7 @@ from ._types import Array, Float
 from .camera import Camera, box_half_extent, intersect_box
 from .composition import COMPOSITORS, Sample
 from .gradient import regression_gradient
-from .importance import Importance, normalized_gradient_magnitude, sample_importance
+from .importance import Importance, _sample_importance, normalized_gradient_magnitude
 from .sampling import trilinear
 from .shading import SHADERS, Phong
 from .transfer import TransferFunction
@@ -160,10 +160,12 @@ def march(
         sample_imp = None
         if measured:
             tau = jnp.minimum(-log1m(alpha0), max_depth) / transfer.step0
-            sample_imp, darkening = sample_importance(
-                importance, intensity=value, extinction=tau,
-                gradient_magnitude=trilinear(magnitude, index, mode="nearest"), normal=-grad,
-                view=eye_dir, light=eye_dir, optical_depth=depth, global_weight=focus)
+            sample_imp, darkening = _sample_importance(
+                importance,
+                {"intensity": value, "extinction": tau, "optical_depth": depth,
+                 "gradient_magnitude": trilinear(magnitude, index, mode="nearest")},
+                {"normal": -grad, "view": eye_dir, "light": eye_dir}, focus,
+                check_finite=False)
             shaded = shaded * darkening[..., None]
             depth = depth + tau * seg * scale
         state = comp.step(state, Sample(alpha[..., None] * shaded, alpha, sample_imp))

@@ -10,6 +10,7 @@ the spacing and the sampling step are static, so a fit over the leaves never
 recompiles.
 """
 
+import math
 from collections.abc import Callable
 
 import equinox as eqx
@@ -151,12 +152,19 @@ def _finite_parameters(scene: Scene, camera: Camera) -> tuple[Scene, Camera]:
 
     def checked(tree, prefix):
         def check(path, leaf):
+            name = prefix + jax.tree_util.keystr(path)
+            # -inf background importance means "no background" (volshade.composite)
+            minus_inf = name == "scene.importance.background"
+            message = (f"volshade.render: `{name}` contains NaN or inf; every scene and "
+                       f"camera parameter must be finite.")
+            if isinstance(leaf, float):  # a static leaf (e.g. set with eqx.tree_at)
+                if not (math.isfinite(leaf) or (minus_inf and leaf == -math.inf)):
+                    raise ValueError(message)
+                return leaf
             if not eqx.is_inexact_array(leaf) or leaf is scene.volume:
                 return leaf
-            name = prefix + jax.tree_util.keystr(path)
-            return eqx.error_if(leaf, ~jnp.all(jnp.isfinite(leaf)),
-                                f"volshade.render: `{name}` contains NaN or inf; every scene "
-                                f"and camera parameter must be finite.")
+            ok = jnp.isfinite(leaf) | ((leaf == -jnp.inf) if minus_inf else False)
+            return eqx.error_if(leaf, ~jnp.all(ok), message)
 
         return jax.tree_util.tree_map_with_path(check, tree)
 
