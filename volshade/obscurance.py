@@ -606,6 +606,18 @@ def obscurance_shading(
     obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
                                 "obscurance", where).astype(dtype)
     batch = normal.shape[:-1]
+    if obscurance.shape not in (batch, (*batch, 3)):
+        raise ValueError(f"{where}: `obscurance` must have shape {batch} (grey) or "
+                         f"{(*batch, 3)} (RGB) to match `normal`, got {obscurance.shape}.")
+    return _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess)
+
+
+def _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess):
+    """:func:`obscurance_shading` without its checks, for the renderer's per-sample
+    shader (whose inputs come from a checked volume: a run-time check at every step of
+    the march would cost a host round trip on a GPU)."""
+    dtype = normal.dtype
+    batch = normal.shape[:-1]
     light = jnp.broadcast_to(light, normal.shape)
     view = jnp.broadcast_to(view, normal.shape)
     n = safe_normalize(normal)
@@ -615,12 +627,7 @@ def obscurance_shading(
     n_dot_h = jnp.maximum(jnp.sum(n * half, axis=-1), 0)
     k_d, k_s, shininess = (jnp.asarray(v, dtype) for v in (k_d, k_s, shininess))
     local = k_d * n_dot_l + k_s * safe_pow(n_dot_h, shininess)
-    if obscurance.shape == batch:
-        return local * obscurance
-    if obscurance.shape == (*batch, 3):
-        return local[..., None] * obscurance
-    raise ValueError(f"{where}: `obscurance` must have shape {batch} (grey) or "
-                     f"{(*batch, 3)} (RGB) to match `normal`, got {obscurance.shape}.")
+    return local * obscurance if obscurance.shape == batch else local[..., None] * obscurance
 
 
 

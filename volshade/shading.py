@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from ._numerics import safe_normalize, safe_pow
 from ._types import Array, Float
-from .obscurance import obscurance_shading
+from .obscurance import _obscurance_shading
 
 
 class Phong(eqx.Module):
@@ -83,8 +83,9 @@ def obscurance_lit(color, gradient, light, view, ambient, params):
     r"""Eq. 5 of Ruiz et al. 2008: $c\,(k_d N\cdot L + k_s (N\cdot H)^n)\, O(x)$, the whole
     local lighting scaled by the (grey or RGB) obscurance passed as ``ambient``."""
     obs = jnp.broadcast_to(ambient, color.shape)
-    return color * obscurance_shading(-gradient, light, view, obs, k_d=params.diffuse,
-                                      k_s=params.specular, shininess=params.shininess)
+    return color * _obscurance_shading(-gradient, jnp.asarray(light, color.dtype),
+                                       jnp.asarray(view, color.dtype), obs, params.diffuse,
+                                       params.specular, params.shininess)
 
 
 class Shader(NamedTuple):
