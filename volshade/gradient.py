@@ -98,21 +98,21 @@ def regression_gradient(
     def shifted(k):
         return padded[tuple(slice(half + k[ax], half + k[ax] + shape[ax]) for ax in range(3))]
 
-    # The kernels are odd (K_i(-k) = -K_i(k)), so each component is summed over
-    # central differences f(x + k) - f(x - k): exactly 0 wherever the neighbourhood
-    # is constant. A convolution's rounding leaves noise there instead, which
-    # normalising turns into random unit normals with huge derivatives.
-    components = []
-    for i in range(3):
-        total = None
-        for k in np.ndindex(*kernel.shape[1:]):
-            k = tuple(int(c) - half for c in k)
-            weight = float(kernel[(i, *(c + half for c in k))])
-            if k[i] <= 0 or weight == 0:
-                continue
-            term = weight * (shifted(k) - shifted(tuple(-c for c in k)))
-            total = term if total is None else total + term
-        components.append(total)
+    # The kernels are odd (K_i(-k) = -K_i(k)), so each pair {k, -k} contributes
+    # K_i(k) (f(x + k) - f(x - k)): exactly 0 wherever the neighbourhood is constant.
+    # A convolution's rounding leaves noise there instead, which normalising turns
+    # into random unit normals with huge derivatives. Each difference is taken once.
+    components = [None, None, None]
+    for index in np.ndindex(*kernel.shape[1:]):
+        k = tuple(int(c) - half for c in index)
+        if k <= (0, 0, 0):  # one offset of each pair (lexicographically positive)
+            continue
+        diff = shifted(k) - shifted(tuple(-c for c in k))
+        for i in range(3):
+            weight = float(kernel[(i, *index)])
+            if weight != 0:
+                term = weight * diff
+                components[i] = term if components[i] is None else components[i] + term
     return jnp.stack(components, axis=-1)
 
 

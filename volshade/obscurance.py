@@ -541,9 +541,11 @@ def threshold(
     if low.ndim or high.ndim:
         raise ValueError(f"{where}: `low` and `high` must be scalars, got shapes "
                          f"{low.shape} and {high.shape}.")
-    low = eqx.error_if(low, ~(low <= high), f"{where}: `low` must be <= `high` (both finite).")
-    high = eqx.error_if(high, ~jnp.isfinite(high) | ~jnp.isfinite(low),
-                        f"{where}: `low` and `high` must be finite.")
+    # checked on the input, which the output always uses (a check on `low` alone
+    # would be compiled away where every value is above `high`)
+    obscurance = eqx.error_if(obscurance, ~jnp.isfinite(low) | ~jnp.isfinite(high),
+                              f"{where}: `low` and `high` must be finite.")
+    obscurance = eqx.error_if(obscurance, low > high, f"{where}: `low` must be <= `high`.")
     ramp = safe_div(obscurance - low, high - low)
     out = jnp.where(obscurance < low, jnp.zeros_like(ramp), ramp)
     return jnp.where(obscurance >= high, jnp.ones_like(ramp), out)
