@@ -67,6 +67,15 @@ def test_distances_arbitrary_directions_and_axis_aligned():
     assert_same_distances(fast, ref.occluder_distances(vol, dirs))
 
 
+@pytest.mark.parametrize("shape", [(11, 2, 3), (3, 17, 2), (1, 9, 13), (13, 1, 1)])
+def test_distances_match_reference_in_thin_volumes(shape):
+    # thin axes make a cyclic column wrap onto many digital lines
+    vol = random_volume(shape, 8, levels=3)
+    dirs = np.concatenate([np.asarray(DIRS42), np.asarray(fibonacci(9)), [[1.0, 1.0, -1.0]]])
+    fast = np.asarray(occluder_distances(jnp.asarray(vol), directions=dirs))
+    assert_same_distances(fast, ref.occluder_distances(vol, dirs))
+
+
 @pytest.mark.parametrize(("rho", "dirs"), [(rho, DIRS42) for rho in RHOS] + [("sqrt", DIRS12)])
 def test_obscurance_matches_reference(rho, dirs):
     vol = random_volume((12, 12, 12), 4)
