@@ -7,7 +7,9 @@ import pytest
 from volshade.importance import Importance, focus_weights, sample_importance
 from volshade.obscurance import obscurance_shading, threshold
 from volshade.saliency import modulate_opacity, opacity_factor
+from volshade.transfer import preset
 
+TF = preset("grey")
 NAN = jnp.asarray([0.2, jnp.nan, 0.4])
 INF = jnp.asarray([0.2, jnp.inf, 0.4])
 
@@ -27,6 +29,10 @@ CASES = {
                              "radius"),
     "opacity_factor threshold": (lambda x: opacity_factor(jnp.ones((2, 2, 2)), threshold=x[1]),
                                  "threshold"),
+    "TransferFunction.opacity": (lambda x: TF.opacity(x), r"TransferFunction\.opacity.*volume"),
+    "TransferFunction.color": (lambda x: TF.color(x), r"TransferFunction\.color.*volume"),
+    "TransferFunction.extinction": (lambda x: TF.extinction(x), r"TransferFunction\.extinction.*volume"),
+    "TransferFunction call": (lambda x: TF(x, step=0.5), r"TransferFunction\.__call__.*volume"),
     "modulate_opacity threshold": (
         lambda x: modulate_opacity(jnp.ones((2, 2, 2)), jnp.ones((2, 2, 2)), threshold=x[1]),
         "threshold"),

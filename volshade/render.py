@@ -149,7 +149,7 @@ def march(
         index = (origins + t_mid[..., None] * directions + half_extent[None, None]) \
             * to_index[None, None] - 0.5
         value = trilinear(volume, index, mode="nearest")
-        color, alpha0 = transfer(value)
+        color, alpha0 = transfer._rgba(value)
         if opacity_scale is not None:
             alpha0 = jnp.minimum(alpha0 * trilinear(opacity_scale, index, mode="nearest"), 1)
         alpha = correct_opacity(alpha0, seg * scale / transfer.step0)

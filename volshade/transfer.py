@@ -96,29 +96,46 @@ class TransferFunction(eqx.Module):
         # Classification follows the volume's dtype, whatever the control values' dtype.
         return jnp.interp(values, self.points.astype(values.dtype), table.astype(values.dtype))
 
-    def opacity(self, volume: Float[Array, "*shape"], *, step: float | Array | None = None
-                ) -> Float[Array, "*shape"]:
-        r"""Opacity of each value; with ``step`` (mm), corrected to that segment length."""
-        volume = jnp.asarray(volume)
+    def _opacity(self, volume: Array, step) -> Array:
         alpha0 = self._interp(volume, self.opacities)
         if step is None:
             return alpha0
         return correct_opacity(alpha0, jnp.asarray(step, volume.dtype) / self.step0)
 
+    def _color(self, volume: Array) -> Array:
+        return jnp.stack([self._interp(volume, self.colors[:, c]) for c in range(3)], axis=-1)
+
+    def _rgba(self, volume: Array, step=None) -> tuple[Array, Array]:
+        """``(color, opacity)`` without the finiteness check, for the renderer's samples
+        (interpolated from a volume checked once; a run-time check at every step of the
+        march would cost a host round trip on a GPU)."""
+        return self._color(volume), self._opacity(volume, step)
+
+    def opacity(self, volume: Float[Array, "*shape"], *, step: float | Array | None = None
+                ) -> Float[Array, "*shape"]:
+        r"""Opacity of each value; with ``step`` (mm), corrected to that segment length.
+
+        Raises:
+            ValueError: NaN or inf in ``volume`` (interpolation would clamp an
+                infinite value to the last control point's opacity, silently).
+        """
+        return self._opacity(_finite_values(volume, "opacity"), step)
+
     def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
         r"""Extinction $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
-        volume = jnp.asarray(volume)
-        return -log1m(self.opacity(volume)) / self.step0
+        return -log1m(self._opacity(_finite_values(volume, "extinction"), None)) / self.step0
 
     def color(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape 3"]:
-        """RGB colour of each value, shape ``(*shape, 3)``."""
-        volume = jnp.asarray(volume)
-        return jnp.stack([self._interp(volume, self.colors[:, c])
-                          for c in range(3)], axis=-1)
+        """RGB colour of each value, shape ``(*shape, 3)``; NaN or inf is refused."""
+        return self._color(_finite_values(volume, "color"))
 
     def __call__(self, volume: Float[Array, "*shape"], *, step=None):
-        """``(color, opacity)`` of each value."""
-        return self.color(volume), self.opacity(volume, step=step)
+        """``(color, opacity)`` of each value; NaN or inf is refused."""
+        return self._rgba(_finite_values(volume, "__call__"), step)
+
+
+def _finite_values(volume, method: str) -> Array:
+    return _checks.finite(jnp.asarray(volume), "volume", f"{_WHERE}.{method}")
 
 
 class IntervalFeature(eqx.Module):
