@@ -30,7 +30,13 @@ from volshade.composition import composite
 from volshade.directions import icosphere
 from volshade.importance import Focus, Importance
 from volshade.lao import LocalAmbientOcclusion, lao
-from volshade.obscurance import obscurance
+from volshade.obscurance import (
+    RHO_FUNCTIONS,
+    _direction_array,
+    _obscurance,
+    _static_dirs,
+    obscurance,
+)
 from volshade.render import n_samples
 from volshade.saliency import saliency
 
@@ -93,6 +99,20 @@ def run(quick: bool) -> dict:
     t = time_fn(obs, density, jnp.float32(64.0), repeats=3)
     rows.append({"case": f"obscurance {n}^3 162 dirs d_max 64", "median_s": t["median_s"],
                  "compile_s": t["first_call_s"] - t["median_s"]})
+    # the search's column layout (volshade.obscurance._columns_last picks the last axis on a
+    # GPU by reasoning, not measurement): both, same run, same result
+    static = _static_dirs(_direction_array(dirs162, "directions", "gpu benchmark"))
+    med, out = {}, {}
+    for last in (False, True):
+        fn = jax.jit(lambda d, dm, last=last: _obscurance(
+            d, dm, None, None, dirs=static, rho_fn=RHO_FUNCTIONS["sqrt"], columns_last=last))
+        med[last] = time_fn(fn, density, jnp.float32(64.0), repeats=3)["median_s"]
+        out[last] = fn(density, jnp.float32(64.0))
+        rows.append({"case": f"obscurance {n}^3 162 dirs, columns along the "
+                             f"{'last' if last else 'first'} axis", "median_s": med[last]})
+    ratios["obscurance columns last / first (time)"] = med[True] / med[False]
+    ratios["obscurance columns last vs first: max |difference|"] = float(
+        jnp.max(jnp.abs(out[True] - out[False])))
 
     # LAO bricks on a sparse volume (a ball; 1/8 of the bricks within reach): bricked / plain.
     n, brick = (128, 16) if quick else (256, 32)

@@ -31,7 +31,8 @@ CASES = {
                                  "threshold"),
     "TransferFunction.opacity": (lambda x: TF.opacity(x), r"TransferFunction\.opacity.*volume"),
     "TransferFunction.color": (lambda x: TF.color(x), r"TransferFunction\.color.*volume"),
-    "TransferFunction.extinction": (lambda x: TF.extinction(x), r"TransferFunction\.extinction.*volume"),
+    "TransferFunction.extinction": (lambda x: TF.extinction(x),
+                                    r"TransferFunction\.extinction.*volume"),
     "TransferFunction call": (lambda x: TF(x, step=0.5), r"TransferFunction\.__call__.*volume"),
     "modulate_opacity threshold": (
         lambda x: modulate_opacity(jnp.ones((2, 2, 2)), jnp.ones((2, 2, 2)), threshold=x[1]),

@@ -11,6 +11,9 @@ from helpers import check_grad_fd
 from volshade.directions import fibonacci, icosphere
 from volshade.obscurance import (
     RHO_FUNCTIONS,
+    _direction_array,
+    _occluder_distances,
+    _static_dirs,
     obscurance,
     obscurance_shading,
     occluder_distances,
@@ -65,6 +68,16 @@ def test_distances_arbitrary_directions_and_axis_aligned():
                            [[1.0, 1.0, 1.0], [-1.0, 1.0, -1.0], [0.3, -0.9, 0.0]]])
     fast = np.asarray(occluder_distances(jnp.asarray(vol), directions=dirs))
     assert_same_distances(fast, ref.occluder_distances(vol, dirs))
+
+
+@pytest.mark.parametrize("columns_last", [False, True])
+def test_both_column_layouts_match_reference(columns_last):
+    # the GPU searches columns laid out along the last axis, the CPU along the first
+    vol = random_volume((9, 12, 7), 9, levels=4)
+    dirs = np.concatenate([np.asarray(DIRS42), [[0.2, -1.0, 0.7]]])
+    fast = _occluder_distances(jnp.asarray(vol), _static_dirs(_direction_array(dirs, "d", "t")),
+                               columns_last=columns_last)
+    assert_same_distances(np.asarray(fast), ref.occluder_distances(vol, dirs))
 
 
 @pytest.mark.parametrize("shape", [(11, 2, 3), (3, 17, 2), (1, 9, 13), (13, 1, 1)])

@@ -257,16 +257,19 @@ def _segment_ends(off: Array, n: int) -> Array:
     return jnp.concatenate([first_after, jnp.full((1, n), n_a, first_after.dtype)])
 
 
-def _shift_up(y: Array, s: int, fill: Array) -> Array:
-    """``y[i + s]`` along axis 0, ``fill`` past the end."""
-    if s >= y.shape[0]:
+def _shift_up(y: Array, s: int, fill: Array, axis: int = 0) -> Array:
+    """``y[i + s]`` along ``axis``, ``fill`` past the end."""
+    n = y.shape[axis]
+    if s >= n:
         return jnp.full_like(y, fill)
-    tail = jnp.full((s, *y.shape[1:]), fill, y.dtype)
-    return jnp.concatenate([y[s:], tail], axis=0)
+    tail = list(y.shape)
+    tail[axis] = s
+    return jnp.concatenate([jax.lax.slice_in_dim(y, s, n, axis=axis),
+                            jnp.full(tail, fill, y.dtype)], axis=axis)
 
 
-def _first_greater_steps(x: Array) -> Array:
-    """Per position ``i`` of each column (axis 0): the smallest ``t >= 1`` with
+def _first_greater_steps(x: Array, axis: int = 0) -> Array:
+    """Per position ``i`` of each column (along ``axis``): the smallest ``t >= 1`` with
     ``x[i + t] > x[i]``, or 0 when none exists.
 
     Sparse table $M_k[i] = \\max x[i+1 .. i+2^k]$ built by doubling, then binary
@@ -274,34 +277,53 @@ def _first_greater_steps(x: Array) -> Array:
     $2^k$ values are all ``<= x[i]``. $O(n \\log n)$ for a column of length $n$,
     whatever the distance of the answer.
     """
-    n = x.shape[0]
+    n = x.shape[axis]
     n_levels = max(0, math.ceil(math.log2(n))) if n > 1 else 0
     neg = jnp.asarray(-jnp.inf, x.dtype)
     levels = []
-    m = _shift_up(x, 1, neg)
+    m = _shift_up(x, 1, neg, axis)
     for k in range(n_levels):
         levels.append(m)
         if k + 1 < n_levels:
-            m = jnp.maximum(m, _shift_up(m, 2**k, neg))
-    iota = jax.lax.broadcasted_iota(jnp.int32, x.shape, 0)
+            m = jnp.maximum(m, _shift_up(m, 2**k, neg, axis))
+    iota = jax.lax.broadcasted_iota(jnp.int32, x.shape, axis % x.ndim)
     pos = jnp.zeros(x.shape, jnp.int32)
     for k in reversed(range(n_levels)):
         idx = jnp.minimum(iota + pos, n - 1)
-        ahead = jnp.take_along_axis(levels[k], idx, axis=0)
+        ahead = jnp.take_along_axis(levels[k], idx, axis=axis)
         pos = jnp.where(ahead <= x, pos + 2**k, pos)
     target = iota + pos + 1
     return jnp.where(target < n, pos + 1, 0)
 
 
-def _frame_steps(tiled: Array, off_b: Array, off_c: Array) -> Array:
+def _columns_last() -> bool:
+    """Whether the search runs on columns laid out along the last (contiguous) axis.
+
+    Binary lifting reads each level at a data-dependent position of the voxel's own
+    column. With columns along the first axis, neighbouring voxels (threads) read
+    from unrelated rows; along the last axis they read within one contiguous column,
+    which a GPU's memory transactions favour, at the price of two transposes per
+    direction. On a CPU the transposes cost more than they save (the whole obscurance
+    measured 1.6x slower at 64^3 and 1.7x at 128^3, 42 directions), so the first axis is
+    kept there; on a GPU the last axis is the reasoned choice, not yet a measured one
+    (``python -m benchmarks.run gpu`` times both).
+    """
+    return jax.default_backend() != "cpu"
+
+
+def _frame_steps(tiled: Array, off_b: Array, off_c: Array, columns_last: bool) -> Array:
     """Steps to the occluder of every frame voxel along one direction (0: none).
 
     ``tiled`` is the frame tiled twice along b and c (:func:`_wrap`). The first greater
     value ahead is searched in the whole cyclic column; where it lies past the end of
     the voxel's own line (the column wrapped to another line), there is no occluder.
     """
-    n_a, n_b, n_c = tiled.shape[0], tiled.shape[1] // 2, tiled.shape[2] // 2
-    steps = _first_greater_steps(_wrap(tiled, off_b, off_c, n_b, n_c))
+    n_b, n_c = tiled.shape[1] // 2, tiled.shape[2] // 2
+    columns = _wrap(tiled, off_b, off_c, n_b, n_c)
+    if columns_last:
+        steps = jnp.moveaxis(_first_greater_steps(jnp.moveaxis(columns, 0, -1), -1), -1, 0)
+    else:
+        steps = _first_greater_steps(columns)
     target = jax.lax.broadcasted_iota(jnp.int32, steps.shape, 0) + steps
     on_line = ((target < _segment_ends(off_b, n_b)[:, :, None])
                & (target < _segment_ends(off_c, n_c)[:, None, :]))
@@ -382,7 +404,7 @@ def occluder_distances(
     where = "volshade.obscurance.occluder_distances"
     density = jax.lax.stop_gradient(_checks.volume(density, "density", where))
     dirs = _direction_array(directions, "directions", where)
-    return _occluder_distances(density, _static_dirs(dirs))
+    return _occluder_distances(density, _static_dirs(dirs), columns_last=_columns_last())
 
 
 def _static_dirs(dirs: np.ndarray) -> tuple[tuple[float, float, float], ...]:
@@ -390,8 +412,8 @@ def _static_dirs(dirs: np.ndarray) -> tuple[tuple[float, float, float], ...]:
     return tuple(tuple(float(x) for x in row) for row in dirs)
 
 
-@functools.partial(jax.jit, static_argnames=("dirs",))
-def _occluder_distances(density: Array, dirs: tuple) -> Array:
+@functools.partial(jax.jit, static_argnames=("dirs", "columns_last"))
+def _occluder_distances(density: Array, dirs: tuple, *, columns_last: bool) -> Array:
     dirs = np.asarray(dirs)
     dtype = density.dtype
     out = jnp.zeros((dirs.shape[0], *density.shape), dtype)
@@ -400,7 +422,7 @@ def _occluder_distances(density: Array, dirs: tuple) -> Array:
 
         def one(tables, tiled=tiled, g=g):
             off_b, off_c, step = tables
-            steps = _frame_steps(tiled, off_b, off_c)
+            steps = _frame_steps(tiled, off_b, off_c, columns_last)
             dist = jnp.where(steps > 0, steps.astype(dtype) * step, jnp.inf)
             return _from_frame(dist, g.axis, g.sign)
 
@@ -493,12 +515,12 @@ def obscurance(
             raise ValueError(f"{where}: `ambient` must be an RGB triple, shape (3,), got "
                              f"{ambient.shape}.")
     return _obscurance(density, d_max, colors, ambient if bleeding else None,
-                       dirs=_static_dirs(dirs), rho_fn=rho_fn)
+                       dirs=_static_dirs(dirs), rho_fn=rho_fn, columns_last=_columns_last())
 
 
-@functools.partial(jax.jit, static_argnames=("dirs", "rho_fn"))
+@functools.partial(jax.jit, static_argnames=("dirs", "rho_fn", "columns_last"))
 def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Array | None,
-                *, dirs: tuple, rho_fn: Callable) -> Array:
+                *, dirs: tuple, rho_fn: Callable, columns_last: bool) -> Array:
     dirs = np.asarray(dirs)
     dtype = density.dtype
     bleeding = colors is not None
@@ -512,7 +534,7 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
 
         def body(acc, tables, tiled=tiled, frame_colors=frame_colors):
             off_b, off_c, step = tables
-            steps = _frame_steps(tiled, off_b, off_c)
+            steps = _frame_steps(tiled, off_b, off_c, columns_last)
             dist = steps.astype(dtype) * step
             occluded = (steps > 0) & (dist <= d_max)
             safe_dist = jnp.where(occluded, dist, d_max)
