@@ -8,7 +8,7 @@ import pytest
 import reference_obscurance as ref
 from helpers import check_grad_fd
 
-from volshade.directions import fibonacci, icosphere
+from volshade.directions import fibonacci, icosphere, icosphere_points
 from volshade.obscurance import (
     RHO_FUNCTIONS,
     _direction_array,
@@ -303,6 +303,10 @@ def test_errors():
         obscurance(vol, directions=DIRS12, d_max=2.0, colors=jnp.zeros((4, 4, 4)))
     with pytest.raises(TypeError, match="concrete"):
         jax.jit(lambda d: obscurance(vol, directions=d, d_max=2.0))(jnp.asarray(DIRS12))
+    with pytest.raises(TypeError, match="icosphere_points"):
+        jax.jit(lambda v: obscurance(v, directions=icosphere(0), d_max=2.0))(vol)
+    inside = jax.jit(lambda v: obscurance(v, directions=icosphere_points(0), d_max=2.0))(vol)
+    np.testing.assert_array_equal(inside, obscurance(vol, directions=icosphere(0), d_max=2.0))
     with pytest.raises(Exception, match="NaN"):
         obscurance(vol.at[1, 1, 1].set(jnp.nan), directions=DIRS12, d_max=2.0)
     with pytest.raises(Exception, match="d_max"):

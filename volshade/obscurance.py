@@ -140,8 +140,10 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError) as err:
         raise TypeError(
             f"{where}: `{name}` must be concrete (numpy or a JAX array outside `jit`), not "
-            f"traced: the directions set the sweep; close over them instead of passing "
-            f"them as a jit argument."
+            f"traced: the directions set the sweep. Close over them instead of passing "
+            f"them as a jit argument, and inside a jitted function build them with NumPy, "
+            f"e.g. `volshade.directions.icosphere_points(1)` (jnp arrays made under `jit` are "
+            f"traced)."
         ) from err
     except (TypeError, ValueError) as err:
         raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, "
