@@ -8,8 +8,9 @@ from helpers import check_grad_fd
 
 from volshade.directions import icosphere
 from volshade.gradient import regression_gradient
-from volshade.obscurance import obscurance
+from volshade.obscurance import _direction_array, _static_dirs, obscurance
 from volshade.saliency import (
+    _viewpoint_sums,
     least_salient_view,
     modulate_opacity,
     most_salient_view,
@@ -112,6 +113,24 @@ def test_viewpoint_saliency_matches_per_voxel_reference(visibility):
     got = viewpoint_saliency(jnp.asarray(sal), jnp.asarray(alpha), VIEWS, visibility=visibility)
     want = reference_viewpoint_saliency(sal, alpha, VIEWS, visibility)
     np.testing.assert_allclose(np.asarray(got), want, rtol=1e-12)
+
+
+@pytest.mark.parametrize("visibility", ["transmittance", "contribution"])
+def test_cumulative_and_sequential_transmittance_agree(visibility):
+    # a CPU takes the transmittance as a scan over slices, other backends as a cumprod
+    rng = np.random.default_rng(5)
+    sal, alpha = jnp.asarray(rng.random((6, 5, 7))), jnp.asarray(rng.random((6, 5, 7)))
+    alpha = alpha.at[2, 2].set(1.0)  # opaque voxels
+    views = _static_dirs(_direction_array(VIEWS, "viewpoints", "test"))
+
+    def total(a, sequential):
+        return jnp.sum(_viewpoint_sums(sal, a, dirs=views, visibility=visibility,
+                                       sequential=sequential) ** 2)
+
+    np.testing.assert_allclose(float(total(alpha, True)), float(total(alpha, False)),
+                               rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(jax.grad(total)(alpha, True)),
+                               np.asarray(jax.grad(total)(alpha, False)), rtol=1e-11, atol=1e-13)
 
 
 def test_hidden_detail_visible_from_one_side_only():

@@ -158,18 +158,41 @@ def _per_view(
     return out
 
 
-def _transmittance(alpha: Array) -> Array:
-    """Exclusive product of ``1 - alpha`` over the positions after each one (axis 0)."""
-    inclusive = jax.lax.cumprod(1 - alpha, axis=0, reverse=True)
-    return _shift_up(inclusive, 1, jnp.ones((), alpha.dtype))
+def _sequential_products() -> bool:
+    """Whether the transmittance along columns is a ``lax.scan`` over slices (a CPU) or
+    ``lax.cumprod`` (elsewhere). XLA lowers ``cumprod`` to an associative scan of strided
+    slices, which on a CPU measured 18x slower than the scan (64 x 128^2 columns; the
+    whole viewpoint saliency of 42 views 4.0x faster at 64^3, 4.3x at 96^3). On a GPU
+    the scan would be one small kernel per slice, so ``cumprod`` is kept there."""
+    return jax.default_backend() == "cpu"
 
 
-@functools.partial(jax.jit, static_argnames=("dirs", "visibility"))
-def _viewpoint_sums(saliency: Array, opacity: Array, *, dirs: tuple, visibility: str) -> Array:
+def _visible_sum(alpha: Array, weights: Array, visibility: Callable, sequential: bool
+                 ) -> Array:
+    r"""$\sum_p w(p)\, \mathrm{vis}(T(p), \alpha(p))$ over columns along axis 0,
+    $T(p)$ the product of $1 - \alpha$ over the positions after $p$ (towards the viewer)."""
+    if not sequential:
+        inclusive = jax.lax.cumprod(1 - alpha, axis=0, reverse=True)
+        trans = _shift_up(inclusive, 1, jnp.ones((), alpha.dtype))
+        return jnp.sum(weights * visibility(trans, alpha))
+
+    def step(carry, slices):
+        trans, total = carry
+        a, w = slices
+        return (trans * (1 - a), total + w * visibility(trans, a)), None
+
+    init = (jnp.ones(alpha.shape[1:], alpha.dtype), jnp.zeros(alpha.shape[1:], alpha.dtype))
+    (_, total), _ = jax.lax.scan(step, init, (alpha, weights), reverse=True)
+    return jnp.sum(total)
+
+
+@functools.partial(jax.jit, static_argnames=("dirs", "visibility", "sequential"))
+def _viewpoint_sums(saliency: Array, opacity: Array, *, dirs: tuple, visibility: str,
+                    sequential: bool) -> Array:
     vis_fn = _VISIBILITY[visibility]
 
     def reduce(alpha, cols_saliency, cosine):
-        return jnp.sum(cols_saliency * vis_fn(_transmittance(alpha), alpha))
+        return _visible_sum(alpha, cols_saliency, vis_fn, sequential)
 
     return _per_view(opacity, np.asarray(dirs), reduce, saliency)
 
@@ -230,7 +253,8 @@ def viewpoint_saliency(
     _checks.option(visibility, _VISIBILITY, "visibility", where)
     saliency, opacity = _check_pair(saliency, opacity, where)
     dirs = _static_dirs(_direction_array(viewpoints, "viewpoints", where))
-    total = _viewpoint_sums(saliency, opacity, dirs=dirs, visibility=visibility)
+    total = _viewpoint_sums(saliency, opacity, dirs=dirs, visibility=visibility,
+                            sequential=_sequential_products())
     if per_area:
         total = safe_div(total, projected_area(opacity, viewpoints))
     return total
