@@ -1,7 +1,11 @@
 import os
 import pathlib
 
-import jax
+# pytest-xdist runs one JAX process per worker; on a GPU each would otherwise take 75% of
+# the device's memory on its first operation and the second worker would run out
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
 import pytest
 
 jax.config.update("jax_enable_x64", True)

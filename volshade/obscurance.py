@@ -308,7 +308,9 @@ def _columns_last() -> bool:
     direction. On a CPU the transposes cost more than they save (the whole obscurance
     measured 1.6x slower at 64^3 and 1.7x at 128^3, 42 directions), so the first axis is
     kept there; on a GPU the last axis is the reasoned choice, not yet a measured one
-    (``python -m benchmarks.run gpu`` times both).
+    (``python -m benchmarks.run gpu`` times both). The choice follows the default
+    backend, not the device of the data: arrays placed on the CPU of a GPU machine
+    get the GPU layout (the same result, more slowly).
     """
     return jax.default_backend() != "cpu"
 

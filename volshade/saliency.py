@@ -163,7 +163,8 @@ def _sequential_products() -> bool:
     ``lax.cumprod`` (elsewhere). XLA lowers ``cumprod`` to an associative scan of strided
     slices, which on a CPU measured 18x slower than the scan (64 x 128^2 columns; the
     whole viewpoint saliency of 42 views 4.0x faster at 64^3, 4.3x at 96^3). On a GPU
-    the scan would be one small kernel per slice, so ``cumprod`` is kept there."""
+    the scan would be one small kernel per slice, so ``cumprod`` is kept there. The
+    choice follows the default backend, not the device of the data."""
     return jax.default_backend() == "cpu"
 
 
