@@ -15,6 +15,8 @@
 * Bricked empty-space skipping on a sparse volume against the unbricked march.
 """
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -173,7 +175,7 @@ def run(quick: bool) -> dict:
         ratios[f"bricked_max_abs_diff_{name.replace(' ', '_')}"] = float(
             jnp.max(jnp.abs(plain(a, r8) - bricked(a, r8))))
         ratios[f"active_brick_fraction_{name.replace(' ', '_')}"] = float(
-            jnp.mean(_active_bricks(a, (9, 9, 9), 16)))
+            jnp.mean(_active_bricks(a, (math.ceil(8.0) + 1,) * 3, 16)))
 
     a = volumes[0][1]
     grads = {}

@@ -424,10 +424,10 @@ def _dot3(x: Array, y: Array) -> Array:
     return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
 
 
-def _samples(colors: Array, alphas: Array, importance: Array) -> Sample:
+def _samples(colors: Array, alphas: Array, importance: Array | None = None) -> Sample:
     """``(..., S, 3)``, ``(..., S)``, ``(..., S)`` -> one :class:`Sample` per step, S leading."""
     return Sample(jnp.moveaxis(colors, -2, 0), jnp.moveaxis(alphas, -1, 0),
-                  jnp.moveaxis(importance, -1, 0))
+                  None if importance is None else jnp.moveaxis(importance, -1, 0))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
@@ -628,7 +628,7 @@ def composite(
 
     if importance is None:
         comp = COMPOSITORS["standard"]
-        xs = Sample(jnp.moveaxis(colors, -2, 0), jnp.moveaxis(alphas, -1, 0))
+        xs = _samples(colors, alphas)
         state, _ = jax.lax.scan(lambda s, x: (comp.step(s, x), None), comp.init(batch, dtype),
                                 xs, unroll=unroll)
         return comp.finish(state, bg)

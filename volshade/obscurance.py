@@ -259,6 +259,13 @@ def _segment_ends(off: Array, n: int) -> Array:
     return jnp.concatenate([first_after, jnp.full((1, n), n_a, first_after.dtype)])
 
 
+def _line_ends(off_b: Array, off_c: Array, n_b: int, n_c: int) -> Array:
+    """``(N_a, N_b, N_c)``: for every position of the cyclic columns, the first position
+    past the end of its own digital line (wrapping along b or along c ends it)."""
+    return jnp.minimum(_segment_ends(off_b, n_b)[:, :, None],
+                       _segment_ends(off_c, n_c)[:, None, :])
+
+
 def _shift_up(y: Array, s: int, fill: Array, axis: int = 0) -> Array:
     """``y[i + s]`` along ``axis``, ``fill`` past the end."""
     n = y.shape[axis]
@@ -329,8 +336,7 @@ def _frame_steps(tiled: Array, off_b: Array, off_c: Array, columns_last: bool) -
     else:
         steps = _first_greater_steps(columns)
     target = jax.lax.broadcasted_iota(jnp.int32, steps.shape, 0) + steps
-    on_line = ((target < _segment_ends(off_b, n_b)[:, :, None])
-               & (target < _segment_ends(off_c, n_c)[:, None, :]))
+    on_line = target < _line_ends(off_b, off_c, n_b, n_c)
     return _unwrap(jnp.where(on_line, steps, 0), off_b, off_c)
 
 
