@@ -19,6 +19,7 @@ from volshade.obscurance import (
     _from_frame,
     _line_ends,
     _line_groups,
+    _tile,
     _to_frame,
     _unwrap,
     _wrap,
@@ -37,11 +38,11 @@ def _march(density, dirs, d_max: int):
     for g in _line_groups(dirs, density.shape):
         frame = _to_frame(density, g.axis, g.sign)
         n_a, n_b, n_c = frame.shape
-        tiled = jnp.tile(frame, (1, 2, 2))
+        tiled = _tile(frame)
 
         def body(acc, tables, tiled=tiled, n_a=n_a, n_b=n_b, n_c=n_c):
             off_b, off_c, step = tables
-            cols = _wrap(tiled, off_b, off_c, n_b, n_c)
+            cols = _wrap(tiled, off_b, off_c)
             padded = jnp.concatenate([cols, jnp.full(cols.shape, -jnp.inf, dtype)])
             position = jax.lax.broadcasted_iota(jnp.int32, cols.shape, 0)
             line_end = _line_ends(off_b, off_c, n_b, n_c)

@@ -170,6 +170,11 @@ def test_non_finite_parameters_are_refused_by_name(jit):
          "scene.background"),
         (vs.Scene(volume=vol, transfer=tf),
          vs.Camera.orbit(azimuth=jnp.nan, elevation=20, image_shape=(6, 6)), "camera.eye"),
+        # -inf is allowed only where Importance declares it (the background), never +inf
+        (vs.Scene(volume=vol, transfer=tf, composition="importance",
+                  importance=Importance(background=jnp.inf)), cam, "scene.importance.background"),
+        (vs.Scene(volume=vol, transfer=tf, composition="importance",
+                  importance=Importance(intensity=-jnp.inf)), cam, "scene.importance.intensity"),
     ]
     nan_float = eqx.tree_at(lambda s: s.phong.diffuse, cases[0][0], float("nan"))
     cases.append((nan_float, cam, "scene.phong.diffuse"))  # a Python float leaf

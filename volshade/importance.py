@@ -25,6 +25,7 @@ References:
 
 import dataclasses
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -91,6 +92,10 @@ class Importance(eqx.Module):
     specular_exponent: Float[Array, ""] = eqx.field(default=50.0, converter=_scalar)
     diffuse_exponent: Float[Array, ""] = eqx.field(default=5.0, converter=_scalar)
     gradient_exponent: Float[Array, ""] = eqx.field(default=30.0, converter=_scalar)
+
+    # leaves for which -inf is a value, not an error: a background importance of -inf
+    # means "no background" (volshade.composite); the renderer's finiteness check asks
+    may_be_minus_inf: ClassVar[tuple[str, ...]] = ("background",)
 
     def __check_init__(self):
         for name, value in _leaves(self).items():

@@ -225,10 +225,16 @@ def _shear(x: Array, off_b: Array, off_c: Array, range_b: int, range_c: int,
     return jax.vmap(one)(pad, start_b, start_c)
 
 
-def _wrap(tiled: Array, off_b: Array, off_c: Array, n_b: int, n_c: int) -> Array:
-    """Cyclic columns of a frame volume, with no padding: ``C[i, u, v] = x[i, (u + o_b(i))
-    mod N_b, (v + o_c(i)) mod N_c]``, from ``tiled``, the frame tiled twice along b and c
-    (so each slice's cyclic shift is one window of it)."""
+def _tile(frame: Array) -> Array:
+    """The frame tiled twice along b and c, as :func:`_wrap` reads it: each slice's
+    cyclic shift is then one window. Built once per direction group and shared."""
+    return jnp.tile(frame, (1, 2, 2))
+
+
+def _wrap(tiled: Array, off_b: Array, off_c: Array) -> Array:
+    """Cyclic columns of a frame volume ``x``, with no padding: ``C[i, u, v] = x[i, (u +
+    o_b(i)) mod N_b, (v + o_c(i)) mod N_c]``, from ``tiled = _tile(x)``."""
+    n_b, n_c = tiled.shape[1] // 2, tiled.shape[2] // 2
 
     def one(slice_, sb, sc):
         return jax.lax.dynamic_slice(slice_, (sb, sc), (n_b, n_c))
@@ -239,8 +245,7 @@ def _wrap(tiled: Array, off_b: Array, off_c: Array, n_b: int, n_c: int) -> Array
 def _unwrap(columns: Array, off_b: Array, off_c: Array) -> Array:
     """Inverse of :func:`_wrap`: ``x[i, j, k] = C[i, (j - o_b(i)) mod N_b, (k - o_c(i)) mod
     N_c]``."""
-    _, n_b, n_c = columns.shape
-    return _wrap(jnp.tile(columns, (1, 2, 2)), -off_b, -off_c, n_b, n_c)
+    return _wrap(_tile(columns), -off_b, -off_c)
 
 
 def _segment_ends(off: Array, n: int) -> Array:
@@ -325,12 +330,12 @@ def _columns_last() -> bool:
 def _frame_steps(tiled: Array, off_b: Array, off_c: Array, columns_last: bool) -> Array:
     """Steps to the occluder of every frame voxel along one direction (0: none).
 
-    ``tiled`` is the frame tiled twice along b and c (:func:`_wrap`). The first greater
+    ``tiled`` is the frame tiled by :func:`_tile`. The first greater
     value ahead is searched in the whole cyclic column; where it lies past the end of
     the voxel's own line (the column wrapped to another line), there is no occluder.
     """
     n_b, n_c = tiled.shape[1] // 2, tiled.shape[2] // 2
-    columns = _wrap(tiled, off_b, off_c, n_b, n_c)
+    columns = _wrap(tiled, off_b, off_c)
     if columns_last:
         steps = jnp.moveaxis(_first_greater_steps(jnp.moveaxis(columns, 0, -1), -1), -1, 0)
     else:
@@ -428,7 +433,7 @@ def _occluder_distances(density: Array, dirs: tuple, *, columns_last: bool) -> A
     dtype = density.dtype
     out = jnp.zeros((dirs.shape[0], *density.shape), dtype)
     for g in _line_groups(dirs, density.shape):
-        tiled = jnp.tile(_to_frame(density, g.axis, g.sign), (1, 2, 2))
+        tiled = _tile(_to_frame(density, g.axis, g.sign))
 
         def one(tables, tiled=tiled, g=g):
             off_b, off_c, step = tables
@@ -539,7 +544,7 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
 
     for g in _line_groups(dirs, density.shape):
         frame = _to_frame(search, g.axis, g.sign)
-        tiled = jnp.tile(frame, (1, 2, 2))
+        tiled = _tile(frame)
         frame_colors = _to_frame(colors, g.axis, g.sign) if bleeding else None
 
         def body(acc, tables, tiled=tiled, frame_colors=frame_colors):

@@ -146,17 +146,32 @@ class Scene(eqx.Module):
                 "shading": self.shading, "composition": self.composition}
 
 
+def _minus_inf_allowed(tree, prefix: str) -> set[str]:
+    """Names of the leaves whose module declares that they may be -inf
+    (``may_be_minus_inf``, e.g. :class:`~volshade.importance.Importance`'s background)."""
+    def declares(node):
+        return isinstance(node, eqx.Module) and bool(getattr(node, "may_be_minus_inf", ()))
+
+    nodes, _ = jax.tree_util.tree_flatten_with_path(
+        tree, is_leaf=lambda node: node is not tree and declares(node))
+    return {prefix + jax.tree_util.keystr((*path, jax.tree_util.GetAttrKey(field)))
+            for path, node in nodes if declares(node) for field in node.may_be_minus_inf}
+
+
 def _finite_parameters(scene: Scene, camera: Camera) -> tuple[Scene, Camera]:
     """Refuse NaN/inf in any floating-point leaf of the scene or camera (naming it), so a
-    bad parameter raises instead of rendering a NaN image. The volume has its own check."""
+    bad parameter raises instead of rendering a NaN image. The volume has its own check;
+    leaves a module declares in ``may_be_minus_inf`` may also be -inf."""
 
     def checked(tree, prefix):
+        allowed = _minus_inf_allowed(tree, prefix)
+
         def check(path, leaf):
             name = prefix + jax.tree_util.keystr(path)
-            # -inf background importance means "no background" (volshade.composite)
-            minus_inf = name == "scene.importance.background"
+            minus_inf = name in allowed
             message = (f"volshade.render: `{name}` contains NaN or inf; every scene and "
-                       f"camera parameter must be finite.")
+                       f"camera parameter must be finite"
+                       f"{' (or -inf)' if minus_inf else ''}.")
             if isinstance(leaf, float):  # a static leaf (e.g. set with eqx.tree_at)
                 if not (math.isfinite(leaf) or (minus_inf and leaf == -math.inf)):
                     raise ValueError(message)
