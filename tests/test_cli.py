@@ -19,7 +19,8 @@ def test_render_command_writes_a_png(tmp_path):
 def test_demo_writes_pngs(tmp_path, monkeypatch):
     monkeypatch.setenv("VOLSHADE_DATA", str(tmp_path / "nothing-here"))
     monkeypatch.setattr("volshade.data._DEBIAN_CH2", tmp_path / "no-ch2.nii.gz")
-    rc = cli.main(["demo", "--out", str(tmp_path / "demo"), "--size", "16", "--image", "20"])
+    # --size 8: the phantom's LAO radius (size / 8 = 1 voxel) keeps the offset below it
+    rc = cli.main(["demo", "--out", str(tmp_path / "demo"), "--size", "8", "--image", "20"])
     assert rc == 0
     pngs = sorted(p.name for p in pathlib.Path(tmp_path / "demo").glob("*.png"))
     assert "shells_phong.png" in pngs and "shells_side_by_side.png" in pngs
@@ -36,3 +37,9 @@ def test_cli_errors(tmp_path, capsys):
     assert cli.main(["render", str(tmp_path / "missing.nii.gz"), "--out",
                      str(tmp_path / "x.png")]) == 2
     assert "missing.nii.gz" in capsys.readouterr().err
+    # a run-time check (a NaN parameter) is reported like the others, without a traceback
+    assert cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--size", "8",
+                     "--image", "8", "--background", "nan", "0", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "volshade: error: volshade.render: `scene.background` contains NaN" in err
+    assert "Traceback" not in err and "EQX_ON_ERROR" not in err

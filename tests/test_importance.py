@@ -335,3 +335,17 @@ def test_focus_errors_and_dtype():
     assert w.dtype == jnp.float32
     assert focus_weights((4, 4), center=(1.0, 1.0), radius=1.0, dtype=jnp.float32).dtype \
         == jnp.float32
+
+
+def test_background_importance_no_background_and_weight_off():
+    none = Importance(global_weight=2.0, background=-jnp.inf)
+    assert float(none.background_importance()) == -np.inf
+    assert float(none.background_importance(jnp.asarray(-1.0))) == -np.inf  # either sign
+    assert float(none.background_importance(jnp.asarray(0.0))) == 0.0  # importance off
+    np.testing.assert_allclose(float(Importance(global_weight=2.0, background=-3.0)
+                                     .background_importance()), -6.0)
+    for p in (none, Importance(global_weight=0.0, background=-jnp.inf)):
+        g = jax.grad(lambda p: jnp.sum(composite(
+            jnp.full((2, 3), 0.5), jnp.full((2,), 0.5), importance=jnp.ones(2),
+            background_importance=p.background_importance())) * p.global_weight)(p)
+        assert np.isfinite(float(g.global_weight)) and np.isfinite(float(g.background))

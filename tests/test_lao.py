@@ -360,6 +360,21 @@ def test_bricked_gradients_and_vmap(always_bricked):
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_bricked_gradient(always_bricked, dtype):
+    # the skipped bricks' gradient is an FFT convolution, which needs float32 or more
+    alpha = _sparse_alpha((12, 12, 12), 13, jnp.float64)
+    dirs = vdirs.fibonacci(3).astype(np.float32)
+
+    def f(a, brick):
+        return jnp.sum(lao(a, directions=dirs, radius=4.0, samples=3, brick_size=brick))
+
+    exact = jax.grad(f)(alpha, None)
+    g = jax.grad(f)(alpha.astype(dtype), 4)
+    assert g.dtype == dtype
+    np.testing.assert_allclose(np.asarray(g, np.float64), np.asarray(exact), atol=0.02)
+
+
 # ----------------------------------------------------------------- errors
 
 
@@ -386,6 +401,10 @@ def test_bad_inputs_raise_clear_errors():
         lao(alpha, directions=dirs, radius=4.0, max_radius=3.0)
     with pytest.raises(ValueError, match="brick_size"):
         lao(alpha, directions=dirs, radius=4.0, brick_size=0)
+    with pytest.raises(TypeError, match="radius"):  # a bool is not a distance
+        lao(alpha, directions=dirs, radius=True, offset=0.0)
+    with pytest.raises(TypeError, match="max_radius"):
+        lao(alpha, directions=dirs, radius=0.5, offset=0.0, max_radius=True)
 
 
 def test_bad_values_raise_under_jit():

@@ -66,3 +66,24 @@ def test_safe_pow_at_zero():
     assert float(gx) == 0.0 and float(gp) == 0.0
     np.testing.assert_allclose(nm.safe_pow(2.0, 3.0), 8.0)
     np.testing.assert_allclose(jax.grad(nm.safe_pow, argnums=1)(2.0, 3.0), 8.0 * np.log(2.0))
+
+
+@pytest.mark.parametrize("ratio, slope", [(1.0, 1.0), (2.0, 0.0), (0.5, 0.0)])
+def test_correct_opacity_at_one(ratio, slope):
+    # d/da [1 - (1 - a)^r] = r (1 - a)^(r - 1) at a = 1: 1 for r = 1 (the identity), 0 for
+    # r > 1; infinite for r < 1, where 0 keeps gradients finite
+    assert float(nm.correct_opacity(1.0, ratio)) == 1.0
+    assert float(jax.grad(nm.correct_opacity)(1.0, ratio)) == slope
+    assert float(jax.grad(nm.correct_opacity, argnums=1)(1.0, ratio)) == 0.0
+    if ratio >= 1:  # the left difference agrees
+        left = (nm.correct_opacity(1.0, ratio) - nm.correct_opacity(1.0 - 1e-6, ratio)) / 1e-6
+        np.testing.assert_allclose(float(left), slope, atol=1e-5)
+
+
+def test_correct_opacity_of_a_zero_length_segment_is_zero():
+    # a ray that misses the volume, or a sample past its exit, has length 0: no opacity,
+    # also where the classified opacity is exactly 1
+    alpha = jnp.asarray([0.0, 0.5, 0.999, 1.0])
+    np.testing.assert_array_equal(nm.correct_opacity(alpha, 0.0), 0.0)
+    g = jax.grad(lambda a: jnp.sum(nm.correct_opacity(a, 0.0)))(alpha)
+    np.testing.assert_array_equal(g, 0.0)

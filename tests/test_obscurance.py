@@ -293,6 +293,11 @@ def test_errors():
         obscurance(vol, directions=DIRS12, d_max=0.0)
     with pytest.raises(ValueError, match="d_max"):
         obscurance(vol, directions=DIRS12, d_max=-1)
+    with pytest.raises(ValueError, match="d_max"):  # concrete arrays: at trace time too
+        obscurance(vol, directions=DIRS12, d_max=np.array(-1.0))
+    for not_a_number in (True, "2"):
+        with pytest.raises(TypeError, match="d_max"):
+            obscurance(vol, directions=DIRS12, d_max=not_a_number)
     with pytest.raises(ValueError, match="unknown rho 'cubic'.*'sqrt'"):
         obscurance(vol, directions=DIRS12, d_max=2.0, rho="cubic")
     with pytest.raises(ValueError, match=r"directions.*\(L, 3\)"):
@@ -315,3 +320,11 @@ def test_errors():
         threshold(vol, 0.8, 0.2)
     with pytest.raises(ValueError, match="obscurance"):
         obscurance_shading(jnp.ones((2, 3)), jnp.ones(3), jnp.ones(3), jnp.ones((3,)))
+    with pytest.raises(Exception, match="`ambient` contains NaN"):
+        obscurance(vol, directions=DIRS12, d_max=2.0, colors=jnp.zeros((4, 4, 4, 3)),
+                   ambient=(jnp.nan, 1.0, 1.0))
+    for name, light, view in (("light", [jnp.nan, 0.0, 1.0], [0.0, 0.0, 1.0]),
+                              ("view", [0.0, 0.0, 1.0], [jnp.inf, 0.0, 1.0])):
+        with pytest.raises(Exception, match=f"`{name}` contains NaN or inf"):
+            obscurance_shading(jnp.ones((2, 3)), jnp.asarray(light), jnp.asarray(view),
+                               jnp.ones(2))

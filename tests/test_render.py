@@ -83,8 +83,9 @@ def test_opacity_correction_converges_as_step_shrinks():
 
 def test_gradient_wrt_transfer_function_matches_finite_differences():
     vol = _smooth_volume(8)
-    tf = TransferFunction.from_points([(0.0, 0.1, 0.2, 0.3, 0.05), (0.5, 1.0, 0.5, 0.2, 0.3),
-                                       (1.0, 0.9, 0.9, 1.0, 0.7)])
+    # control values inside (0, 1), so that the differences stay in the valid range
+    tf = TransferFunction.from_points([(0.0, 0.1, 0.2, 0.3, 0.05), (0.5, 0.95, 0.5, 0.2, 0.3),
+                                       (1.0, 0.9, 0.9, 0.95, 0.7)])
     cam = Camera.orbit(azimuth=25.0, elevation=10.0, image_shape=(6, 6))
     weights = jnp.asarray(np.random.default_rng(3).random((6, 6, 4)))
 
@@ -159,6 +160,26 @@ def test_fully_opaque_volume_shows_its_colour():
     np.testing.assert_allclose(img[2, 2], [0.3, 0.4, 0.5, 1.0], atol=1e-12)
 
 
+def test_opaque_volume_leaves_missed_rays_and_the_space_behind_it_empty():
+    # rays that miss the box and samples past the exit have length 0, hence opacity 0,
+    # even where the nearest voxel's opacity is exactly 1
+    tf = _constant_tf(1.0, color=(0.3, 0.4, 0.5))
+    cam = Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=(6, 6),
+                       projection="orthographic", width=1.5)
+    img = np.asarray(march(jnp.ones((8, 8, 8)), tf, cam, background=(1.0, 1.0, 1.0)))
+    origins, dirs = cam.rays()
+    t0, t1 = intersect_box(origins, dirs, box_half_extent((8, 8, 8), (1, 1, 1))[0])
+    hit = np.asarray(t1 > t0)
+    assert hit.any() and not hit.all()
+    np.testing.assert_array_equal(img[~hit], [[1.0, 1.0, 1.0, 0.0]] * int((~hit).sum()))
+    np.testing.assert_allclose(img[hit], [[0.3, 0.4, 0.5, 1.0]] * int(hit.sum()), atol=1e-12)
+    one_voxel = jnp.zeros((8, 8, 8)).at[0, 0, 0].set(1.0)  # clamped to by past-exit samples
+    tf01 = TransferFunction.from_points([(0.0, 0.0, 0.0, 0.0, 0.0), (0.5, 0.0, 0.0, 0.0, 0.0),
+                                         (1.0, 1.0, 0.0, 0.0, 1.0)])
+    far = march(one_voxel, tf01, Camera.orbit(azimuth=30.0, elevation=20.0, image_shape=(16, 16)))
+    assert int(jnp.sum(far[..., 3] > 0.5)) <= 4
+
+
 def test_ambient_volume_scales_unlit_colour():
     tf = _constant_tf(0.2)
     vol = jnp.full((6, 6, 6), 0.5)
@@ -193,12 +214,51 @@ def test_bad_input_errors(tmp_path):
         march(jnp.zeros((4, 4, 4)), tf, cam, composition="mip")
     with pytest.raises(ValueError, match="ambient"):
         march(jnp.zeros((4, 4, 4)), tf, cam, ambient=jnp.zeros((4, 4, 5)))
+    with pytest.raises(Exception, match="`background` contains NaN or inf"):
+        march(jnp.zeros((4, 4, 4)), tf, cam, background=(jnp.nan, 0.0, 0.0))
+    with pytest.raises(ValueError, match="background"):
+        march(jnp.zeros((4, 4, 4)), tf, cam, background=(0.0, 0.0))
+    with pytest.raises(Exception, match=r"`opacity_scale` must be >= 0"):
+        march(jnp.zeros((4, 4, 4)), tf, cam, opacity_scale=jnp.full((4, 4, 4), -1.0))
+    with pytest.raises(TypeError, match="TransferFunction"):
+        march(jnp.zeros((4, 4, 4)), "grey", cam)
+    unsorted = eqx.tree_at(lambda t: t.points, tf, tf.points[::-1])
+    with pytest.raises(Exception, match="strictly increasing"):
+        march(jnp.zeros((4, 4, 4)), unsorted, cam)
     with pytest.raises(ValueError, match="image_shape"):
         Camera.orbit(image_shape=(0, 4))
     with pytest.raises(ValueError, match="projection"):
         Camera.orbit(projection="fisheye")
     with pytest.raises(ValueError, match="NaN"):
         save_png(tmp_path / "x.png", jnp.full((2, 2, 3), jnp.nan))
+
+
+def test_cameras_with_no_image_are_refused():
+    eye, up, zero = jnp.asarray([2.0, 0.0, 0.0]), jnp.asarray([1.0, 0.0, 0.0]), jnp.zeros(3)
+    bad = [
+        (lambda: Camera(zero, zero, up, jnp.asarray(30.0), jnp.asarray(1.0)), "must differ"),
+        (lambda: Camera(eye, zero, up, jnp.asarray(30.0), jnp.asarray(1.0)), "parallel"),
+        (lambda: Camera(eye, zero, zero, jnp.asarray(30.0), jnp.asarray(1.0)), "non-zero"),
+        (lambda: Camera.orbit(distance=0.0), "distance"),
+        (lambda: Camera.orbit(distance=-1.0), "distance"),
+        (lambda: Camera.orbit(fov=0.0), "fov"),
+        (lambda: Camera.orbit(fov=180.0), "fov"),
+        (lambda: Camera.orbit(width=0.0, projection="orthographic"), "width"),
+    ]
+    for make, match in bad:
+        with pytest.raises(ValueError, match=match):
+            make()
+    # traced values (a fit over the camera) are checked when rays are made
+    rays = jax.jit(lambda fov: Camera.orbit(fov=fov, image_shape=(2, 2)).rays())
+    assert rays(30.0)[1].shape == (2, 2, 3)
+    with pytest.raises(Exception, match=r"`fov` must lie in \(0, 180\)"):
+        rays(-30.0)
+    looking_up = jax.jit(lambda u: Camera(eye, zero, u, jnp.asarray(30.0), jnp.asarray(1.0),
+                                          image_shape=(2, 2)).rays())
+    with pytest.raises(Exception, match="parallel"):
+        looking_up(up)
+    for elevation in (90.0, -90.0, 89.95):  # looking along d is not degenerate
+        assert np.all(np.isfinite(Camera.orbit(elevation=elevation, image_shape=(2, 2)).rays()[1]))
 
 
 def test_camera_geometry_and_png(tmp_path):

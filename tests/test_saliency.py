@@ -10,10 +10,12 @@ from volshade.directions import icosphere
 from volshade.gradient import regression_gradient
 from volshade.obscurance import _direction_array, _static_dirs, obscurance
 from volshade.saliency import (
+    SaliencyModulation,
     _viewpoint_sums,
     least_salient_view,
     modulate_opacity,
     most_salient_view,
+    opacity_factor,
     projected_area,
     saliency,
     viewpoint_saliency,
@@ -181,6 +183,20 @@ def test_viewpoint_saliency_grad_vmap_dtype():
     assert out32.dtype == jnp.float32
 
 
+def test_viewpoint_saliency_gradient_exact_at_opacity_one():
+    # one salient voxel (opacity 1/2) behind one voxel of opacity a, viewed along +d
+    # (|s| = 1, so the opacity correction is the identity): S is linear in a, with
+    # dS/da = -1 (transmittance) or -1/2 (contribution), also at a = 1 exactly
+    sal = jnp.zeros((4, 1, 1)).at[0, 0, 0].set(1.0)
+    view = np.array([[1.0, 0.0, 0.0]])
+    for visibility, slope in (("transmittance", -1.0), ("contribution", -0.5)):
+        def f(a, visibility=visibility):
+            alpha = jnp.zeros((4, 1, 1)).at[0, 0, 0].set(0.5).at[2, 0, 0].set(a)
+            return viewpoint_saliency(sal, alpha, view, visibility=visibility)[0]
+        for a in (0.5, 1.0):
+            np.testing.assert_allclose(float(jax.grad(f)(a)), slope, rtol=1e-12)
+
+
 # ------------------------------------------------------------------ opacity modulation
 
 
@@ -220,3 +236,21 @@ def test_errors():
         viewpoint_saliency(v, v + 2.0, VIEWS)
     with pytest.raises(ValueError, match="boost_top"):
         modulate_opacity(v, v, boost_top=1.5)
+    for bad in (1.5, 0.0, -1.0, True, float("nan")):
+        with pytest.raises(ValueError, match="boost_top"):
+            opacity_factor(v, boost_top=bad)
+        with pytest.raises(ValueError, match="boost_top"):
+            SaliencyModulation(boost_top=bad)
+    half = jnp.full((1, 1, 2), 0.5)
+    np.testing.assert_allclose(  # a NumPy float is a fraction too
+        np.asarray(modulate_opacity(half, jnp.ones((1, 1, 2)), boost_top=np.float32(0.5))), 1.0)
+    with pytest.raises(Exception, match=r"`opacity` must lie in \[0, 1\]"):
+        modulate_opacity(half - 1.0, jnp.ones((1, 1, 2)))
+    for kwargs, match in (({"rho": "cubic"}, "rho"), ({"level": 7}, "level"),
+                          ({"size": 4}, "size")):
+        with pytest.raises(ValueError, match=match):
+            SaliencyModulation(**kwargs)
+    with pytest.raises(ValueError, match="at least one channel"):
+        saliency(jnp.zeros((4, 4, 4, 0)))
+    with pytest.raises(Exception, match="`level` must be a finite"):
+        projected_area(v, VIEWS, level=jnp.nan)

@@ -195,3 +195,23 @@ def test_no_background_importance_is_allowed_with_a_focus():
     assert np.all(np.isfinite(np.asarray(image)))
     far = eqx.tree_at(lambda s: s.importance.background, scene, jnp.asarray(-1e30))
     np.testing.assert_allclose(np.asarray(image), np.asarray(render(far, cam)), atol=1e-12)
+
+
+def test_corrected_lao_sees_the_medium_not_how_the_transfer_function_is_written():
+    # one medium, written per 1 mm and per 0.5 mm: with the opacity correction LAO reads
+    # the opacity of a one-voxel step, so its ambient term is the same for both
+    from volshade.scene import _lao_ambient
+
+    rows = [(0.0, 1, 1, 1, 0.3), (1.0, 1, 1, 1, 0.3)]
+    per_mm = vs.TransferFunction.from_points(rows, step0=1.0)
+    per_half_mm = vs.TransferFunction.from_points(
+        [(x, r, g, b, 1 - (1 - a) ** 0.5) for x, r, g, b, a in rows], step0=0.5)
+    vol = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (10, 10, 10)))
+    params = vs.LocalAmbientOcclusion(3.0, offset=0.5, directions=6, samples=4,
+                                      opacity_correction=True)
+    aos = [_lao_ambient(vs.Scene(volume=vol, transfer=tf, ambient="lao", lao=params,
+                                 spacing=(2.0, 2.0, 2.0))) for tf in (per_mm, per_half_mm)]
+    np.testing.assert_allclose(np.asarray(aos[0]), np.asarray(aos[1]), atol=1e-12)
+    # 2 mm voxels: the one-voxel opacity is 1 - 0.7^2
+    direct = params(jnp.full((10, 10, 10), 1 - 0.7 ** 2))
+    np.testing.assert_allclose(np.asarray(aos[0]), np.asarray(direct), atol=1e-12)

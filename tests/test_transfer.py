@@ -1,3 +1,4 @@
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -53,6 +54,27 @@ def test_from_points_errors():
         TransferFunction(jnp.zeros(2), jnp.zeros((3, 3)), jnp.zeros(2))
     with pytest.raises(ValueError, match="step0"):
         TransferFunction(jnp.zeros(1), jnp.zeros((1, 3)), jnp.zeros(1), step0=0.0)
+
+
+def test_control_values_are_checked_however_the_function_is_built():
+    points, colors = jnp.asarray([0.0, 0.5, 1.0]), jnp.full((3, 3), 0.5)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        TransferFunction(points[::-1], colors, jnp.full(3, 0.5))
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        TransferFunction(points, colors, jnp.asarray([0.0, 1.5, 0.5]))
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        TransferFunction(points, colors.at[0, 0].set(-0.1), jnp.full(3, 0.5))
+    x = jnp.linspace(0, 1, 5)
+    tf = TransferFunction(points, colors, jnp.full(3, 0.5))
+    # traced values (a fit) and eqx.tree_at skip __check_init__: checked when used
+    traced = jax.jit(lambda o: TransferFunction(points, colors, o).opacity(x))
+    np.testing.assert_allclose(traced(jnp.full(3, 0.5)), 0.5)
+    with pytest.raises(Exception, match=r"`opacities` must lie in \[0, 1\]"):
+        traced(jnp.asarray([0.0, 1.5, 0.5]))
+    unsorted = eqx.tree_at(lambda t: t.points, tf, points[::-1])
+    for method in (unsorted.opacity, unsorted.color, unsorted.extinction, unsorted):
+        with pytest.raises(Exception, match="strictly increasing"):
+            method(x)
 
 
 def test_presets_and_unknown_preset():

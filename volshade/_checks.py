@@ -10,6 +10,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -30,6 +31,13 @@ def as_float_array(x: Any, name: str, where: str) -> Array:
         f"{where}: `{name}` must have a real floating or integer dtype, got {arr.dtype}; "
         f"convert it with `.astype(jnp.float32)`."
     )
+
+
+def concrete(x: Any) -> np.ndarray | None:
+    """``x`` as a NumPy array when its value is known at trace time, else None (a tracer)."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    return np.asarray(x)
 
 
 def check_ndim(x: Array, ndim: int, name: str, where: str, layout: str) -> None:
@@ -76,6 +84,8 @@ def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:
 
 def positive_float(value: Any, name: str, where: str) -> float:
     """A static float option ``> 0``."""
+    if isinstance(value, bool | np.bool_):
+        raise TypeError(f"{where}: `{name}` must be a number, got {value!r}.")
     try:
         out = float(value)
     except (TypeError, ValueError) as err:

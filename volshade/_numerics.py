@@ -8,6 +8,7 @@ Tolerances come from the input dtype; outputs keep the input dtype.
 """
 
 import jax.numpy as jnp
+from jax import lax
 
 from ._types import Array, ArrayLike
 
@@ -73,15 +74,24 @@ def safe_normalize(x: ArrayLike, axis: int = -1) -> Array:
 def correct_opacity(alpha: ArrayLike, ratio: ArrayLike) -> Array:
     r"""Opacity correction for a changed step length.
 
-    $\alpha' = 1 - (1 - \alpha)^{r}$ with $r = \Delta s / \Delta s_0$, computed as
-    ``-expm1(r * log1p(-alpha))``. ``alpha = 1`` stays exactly 1 (gradient 0
-    there), ``alpha = 0`` stays exactly 0.
+    $\alpha' = 1 - (1 - \alpha)^{r}$ with $r = \Delta s / \Delta s_0 \ge 0$, computed as
+    ``-expm1(r * log1p(-alpha))``. ``alpha = 0`` stays exactly 0 and a segment of length
+    0 (``r = 0``) has opacity exactly 0, also for ``alpha = 1``; otherwise ``alpha = 1``
+    stays exactly 1, and so does an ``alpha`` within one ulp (``eps``) of 1, the
+    rounding of an interpolated 1. There the derivative $r (1 - \alpha)^{r - 1}$ is 1 for $r = 1$
+    (the identity) and 0 for $r > 1$, both returned exactly; for $r < 1$ it is
+    infinite, and 0 is returned so that gradients stay finite.
     """
-    alpha = jnp.asarray(alpha)
-    opaque = alpha >= 1
+    alpha, ratio = jnp.asarray(alpha), jnp.asarray(ratio)
+    # within one ulp of 1 counts as 1: an interpolated opacity of 1 can round to
+    # 1 - eps/2, where the slope r (1 - alpha)^(r - 1) would be ~1e9 (float64, r < 1)
+    opaque = alpha >= 1 - jnp.finfo(jnp.result_type(alpha, float)).eps
     safe_alpha = jnp.where(opaque, jnp.zeros_like(alpha), alpha)
     corrected = -jnp.expm1(ratio * jnp.log1p(-safe_alpha))
-    return jnp.where(opaque, jnp.ones_like(corrected), corrected)
+    # the opaque branch: 1, with the slope 1 of the identity when r = 1, and 0 for r = 0
+    identity_slope = jnp.where(ratio == 1, alpha - lax.stop_gradient(alpha), 0)
+    full = jnp.where(ratio > 0, 1 + identity_slope, 0)
+    return jnp.where(opaque, full, corrected).astype(corrected.dtype)
 
 
 def opacity_from_extinction(tau: ArrayLike, length: ArrayLike) -> Array:

@@ -25,6 +25,10 @@ _PROJECTIONS = ("perspective", "orthographic")
 class Camera(eqx.Module):
     """A pinhole (perspective) or orthographic camera in scene coordinates.
 
+    A camera with no image (``eye == target``, ``up`` zero or along the view, ``fov``
+    outside (0, 180) degrees, ``width <= 0``) is refused: with ``ValueError`` when
+    built from concrete values, at run time when they are traced.
+
     Attributes:
         eye: ``(3,)`` camera position.
         target: ``(3,)`` point looked at.
@@ -57,6 +61,36 @@ class Camera(eqx.Module):
             if jnp.shape(getattr(self, name)) != (3,):
                 raise ValueError(f"{where}: `{name}` must have shape (3,), "
                                  f"got {jnp.shape(getattr(self, name))}.")
+        leaves = (self.eye, self.target, self.up, self.fov, self.width)
+        if all(_checks.concrete(x) is not None for x in leaves):  # traced: checked in rays
+            for bad, message in self._degenerate():
+                if bool(bad):
+                    raise ValueError(f"{where}: {message}")
+
+    def _degenerate(self) -> list[tuple[Array, str]]:
+        """``(is_bad, message)`` for each way the camera can have no image: every
+        pixel would get the same ray, or the image would be flipped."""
+        # NaN compares false here: non-finite values are the finiteness checks' to name
+        view = self.target - self.eye
+        checks = [
+            (jnp.sum(view * view) == 0, "`eye` and `target` must differ (for "
+             "Camera.orbit: `distance` must be > 0)."),
+            (jnp.sum(jnp.cross(self.up, view) ** 2) == 0, "`up` must be non-zero and "
+             "not parallel to the view direction `target - eye`."),
+        ]
+        if self.projection == "perspective":
+            checks.append(((self.fov <= 0) | (self.fov >= 180),
+                           "`fov` must lie in (0, 180) degrees."))
+        else:
+            checks.append((self.width <= 0, "`width` must be > 0 (scene units)."))
+        return checks
+
+    def _valid(self) -> "Camera":
+        """This camera with run-time checks of :meth:`_degenerate` (for traced values)."""
+        camera = self
+        for bad, message in self._degenerate():
+            camera = eqx.error_if(camera, bad, f"volshade.Camera: {message}")
+        return camera
 
     @classmethod
     def orbit(
@@ -92,6 +126,11 @@ class Camera(eqx.Module):
             >>> cam.rays()[1].shape
             (64, 64, 3)
         """
+        dist = _checks.concrete(distance)
+        if dist is not None and not np.all(dist > 0):
+            raise ValueError(f"volshade.Camera.orbit: `distance` must be > 0 (scene units), "
+                             f"got {distance!r}; to look from the other side, change "
+                             f"`azimuth` and `elevation`.")
         dtype = jnp.result_type(float)
         a = jnp.deg2rad(jnp.asarray(azimuth, dtype))
         e = jnp.deg2rad(jnp.asarray(elevation, dtype))
@@ -115,18 +154,19 @@ class Camera(eqx.Module):
     def rays(self) -> tuple[Float[Array, "H W 3"], Float[Array, "H W 3"]]:
         """Ray origins and unit directions, each ``(H, W, 3)``, row 0 at the top."""
         h, w = self.image_shape
-        forward, right, up = self.basis()
+        camera = self._valid()
+        forward, right, up = camera.basis()
         dtype = forward.dtype
         y = 1 - 2 * (jnp.arange(h, dtype=dtype) + 0.5) / h
         x = (2 * (jnp.arange(w, dtype=dtype) + 0.5) / w - 1) * (w / h)
         yy, xx = jnp.meshgrid(y, x, indexing="ij")
         offset = xx[..., None] * right[None, None] + yy[..., None] * up[None, None]
         if self.projection == "perspective":
-            half = jnp.tan(jnp.deg2rad(self.fov) / 2)
+            half = jnp.tan(jnp.deg2rad(camera.fov) / 2)
             directions = safe_normalize(forward[None, None] + half * offset)
-            origins = jnp.broadcast_to(self.eye, directions.shape)
+            origins = jnp.broadcast_to(camera.eye, directions.shape)
         else:
-            origins = self.eye[None, None] + 0.5 * self.width * offset
+            origins = camera.eye[None, None] + 0.5 * camera.width * offset
             directions = jnp.broadcast_to(forward, origins.shape)
         return origins, directions
 

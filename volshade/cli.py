@@ -82,7 +82,9 @@ def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
     vol = data.phantom("shells", shape=size)
     cut = vol.at[:, :, size // 2:].set(0)
     cam = Camera.orbit(azimuth=35, elevation=25, image_shape=shape)
-    shells_lao = LocalAmbientOcclusion(size / 8, offset=1.0, directions=16, samples=8)
+    radius = size / 8
+    shells_lao = LocalAmbientOcclusion(radius, offset=min(1.0, radius / 2), directions=16,
+                                       samples=8)
     shells = dict(volume=cut, transfer=transfer.preset("shells"), background=bg)
     jobs = [
         Job("shells_none", lambda: Scene(**shells), cam),
@@ -174,6 +176,15 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_message(err: Exception) -> str:
+    """The message of a failed run-time check, without equinox's stack and advice."""
+    marker = "EquinoxRuntimeError: "
+    for line in str(err).splitlines():
+        if marker in line:
+            return line.split(marker, 1)[1]
+    return str(err)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     for name in ("size", "image", "downsample"):
@@ -185,6 +196,9 @@ def main(argv: list[str] | None = None) -> int:
         return render_command(args)
     except (ValueError, TypeError, FileNotFoundError, ImportError) as err:
         print(f"volshade: error: {err}", file=sys.stderr)
+        return 2
+    except eqx.EquinoxRuntimeError as err:  # a run-time check (e.g. NaN in a parameter)
+        print(f"volshade: error: {_check_message(err)}", file=sys.stderr)
         return 2
 
 

@@ -591,10 +591,12 @@ def composite(
         TypeError: non-numeric inputs.
 
     Example:
-        >>> composite(jnp.array([[0.5, 0.0, 0.0]]), jnp.array([0.5]))
-        Array([0.5, 0. , 0. , 0.5], dtype=float32)
-        >>> composite(jnp.array([[1.0, 0, 0], [0, 0.5, 0]]), jnp.array([1.0, 0.5]),
-        ...           importance=jnp.array([0.0, 3.0]))  # the green sample shows through
+        >>> composite(jnp.array([[0.5, 0.0, 0.0]]), jnp.array([0.5])).tolist()
+        [0.5, 0.0, 0.0, 0.5]
+        >>> rgba = composite(jnp.array([[1.0, 0, 0], [0, 0.5, 0]]), jnp.array([1.0, 0.5]),
+        ...                  importance=jnp.array([0.0, 3.0]))
+        >>> bool(rgba[1] > rgba[0])  # the important green sample shows through the red
+        True
     """
     where = "volshade.composite"
     unroll = _checks.positive_int(unroll, "unroll", where)

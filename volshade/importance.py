@@ -107,14 +107,21 @@ class Importance(eqx.Module):
     def background_importance(self, global_weight: ArrayLike | None = None) -> Array:
         r"""Importance of the background layer, $I_{bg} = W_{global} W_{bg}$ (sec. IV-C).
 
+        A zero global weight gives 0 (importance off). $W_{bg} = -\infty$ ("no
+        background") gives $-\infty$ for any other weight, of either sign, with
+        finite gradients.
+
         Args:
             global_weight: optional per-ray weights ``(...)`` replacing
                 ``self.global_weight`` (focus plus context).
         """
         g = self.global_weight if global_weight is None else jnp.asarray(global_weight)
-        # a zero weight switches importance off (0, not 0 * -inf = NaN for "no background")
-        off = g == 0
-        return jnp.where(off, 0, g * jnp.where(off, 0, self.background))
+        # a zero weight switches importance off (0, not 0 * -inf = NaN); W_bg = -inf means
+        # "no background" whatever the weight's sign, and is kept out of the product so
+        # that its gradients stay finite (double where)
+        off, none = g == 0, self.background == -jnp.inf
+        product = g * jnp.where(off | none, 0, self.background)
+        return jnp.where(off, 0, jnp.where(none, -jnp.inf, product))
 
 
 def _leaves(params: Importance) -> dict[str, Array]:

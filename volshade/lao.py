@@ -468,7 +468,9 @@ def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
     frac = positions - floor
     base = floor.astype(jnp.int32) + jnp.asarray(pad)[None, None, :]
     scale = suffix.reshape(-1)[:, None] * weights[None]
-    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), cotangent.dtype)
+    # the FFT needs float32 at least (no half-precision FFT); the result is cast back
+    work = jnp.promote_types(cotangent.dtype, jnp.float32)
+    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), work)
     for corner, weight in _corner_weights(tuple(frac[..., ax] for ax in range(3))):
         # offsets beyond the padding reach no voxel; send them past the end to be
         # dropped (a negative index would wrap around, like NumPy's)
@@ -479,7 +481,7 @@ def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
         kernel = kernel.at[where].add((scale * weight).reshape(-1), mode="drop")
     kappa = step if correction else 1
     d_alpha = -(kappa / samples) * fftconvolve(
-        jnp.where(skipped, cotangent, 0), kernel, mode="same")
+        jnp.where(skipped, cotangent, 0).astype(work), kernel, mode="same")
     return (None, d_alpha.astype(cotangent.dtype), jnp.zeros_like(directions),
             jnp.zeros_like(weights), jnp.zeros_like(radius), jnp.zeros_like(offset))
 
@@ -530,6 +532,8 @@ def _directions_array(directions, dtype) -> Array:
 
 
 def _scalar(value, name: str, dtype) -> Array:
+    if isinstance(value, bool | np.bool_):
+        raise TypeError(f"{_WHERE}: `{name}` must be a number (voxels), got {value!r}.")
     try:
         arr = jnp.asarray(value, dtype=dtype)
     except TypeError as err:
@@ -716,9 +720,12 @@ class LocalAmbientOcclusion(eqx.Module):
     not differentiated.
 
     Example:
-        >>> params = LocalAmbientOcclusion(8.0, directions=42, samples=16, max_radius=12.0)
-        >>> ao = params(jnp.zeros((32, 32, 32)))
-        >>> grads = eqx.filter_grad(lambda p: jnp.sum(p(alpha)))(params)  # grads.radius
+        >>> params = LocalAmbientOcclusion(4.0, directions=12, samples=8, max_radius=6.0)
+        >>> alpha = jnp.zeros((16, 16, 16)).at[6:10, 6:10, 6:10].set(0.5)
+        >>> ao = params(alpha)
+        >>> grads = eqx.filter_grad(lambda p: jnp.sum(p(alpha)))(params)
+        >>> bool(grads.radius < 0)  # a longer reach sees more of the block: darker
+        True
     """
 
     radius: Array

@@ -362,11 +362,11 @@ def _occluder_index(steps: Array, off_b: Array, off_c: Array) -> tuple[Array, Ar
 
 
 def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
-    if isinstance(d_max, int | float | np.integer | np.floating) and not (
-        np.isfinite(d_max) and d_max > 0
-    ):
-        raise ValueError(f"{where}: `d_max` must be a finite distance > 0 (voxels), "
-                         f"got {d_max!r}.")
+    """``d_max`` as a scalar array: refused at trace time when concrete, at run time
+    (``eqx.error_if``) when traced."""
+    if isinstance(d_max, bool | str | bytes) or (
+            isinstance(d_max, np.ndarray | jax.Array) and d_max.dtype.kind not in "iuf"):
+        raise TypeError(f"{where}: `d_max` must be a number (voxels), got {d_max!r}.")
     try:
         arr = jnp.asarray(d_max, dtype)
     except TypeError as err:
@@ -375,6 +375,10 @@ def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
     if arr.ndim != 0:
         raise ValueError(f"{where}: `d_max` must be a scalar (voxels), got shape {arr.shape}; "
                          f"for several values use `jax.vmap`.")
+    value = _checks.concrete(d_max)
+    if value is not None and not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{where}: `d_max` must be a finite distance > 0 (voxels), "
+                         f"got {d_max!r}.")
     return eqx.error_if(arr, ~(jnp.isfinite(arr) & (arr > 0)),
                         f"{where}: `d_max` must be a finite distance > 0 (voxels).")
 
@@ -525,10 +529,11 @@ def obscurance(
             raise ValueError(f"{where}: `colors` must have shape {(*density.shape, 3)} "
                              f"(D, H, W, RGB) to match `density`, got {colors.shape}.")
         colors = _checks.finite(colors, "colors", where)
-        ambient = jnp.asarray(ambient, dtype)
+        ambient = _checks.as_float_array(ambient, "ambient", where).astype(dtype)
         if ambient.shape != (3,):
             raise ValueError(f"{where}: `ambient` must be an RGB triple, shape (3,), got "
                              f"{ambient.shape}.")
+        ambient = _checks.finite(ambient, "ambient", where)
     return _obscurance(density, d_max, colors, ambient if bleeding else None,
                        dirs=_static_dirs(dirs), rho_fn=rho_fn, columns_last=_columns_last())
 
@@ -581,9 +586,11 @@ def threshold(
 
     Values below ``low`` become 0 (black), values at or above ``high`` become 1
     (unobscured), and the band between is stretched linearly onto $[0, 1]$
-    (continuous; the paper's "linear distribution"). ``low == high`` gives a
-    binary map. ``low`` and ``high`` may be traced and are differentiable;
-    the division is safe (no NaN gradient when ``low == high``).
+    (continuous; the paper's "linear distribution"). The paper adds "(preserving
+    their original value)", which could also be read as keeping $O$ unchanged
+    between the thresholds; that reading jumps at both of them, so the stretch is
+    used. ``low == high`` gives a binary map. ``low`` and ``high`` may be traced and
+    are differentiable; the division is safe (no NaN gradient when ``low == high``).
 
     Args:
         obscurance: obscurance values of any shape (grey or RGB), nominally in [0, 1].
@@ -601,8 +608,8 @@ def threshold(
         Ruiz et al. 2008, section 5.1.
 
     Example:
-        >>> threshold(jnp.array([0.1, 0.5, 0.9]), 0.2, 0.8)
-        Array([0. , 0.5, 1. ], dtype=float32)
+        >>> [round(x, 6) for x in threshold(jnp.array([0.1, 0.5, 0.9]), 0.2, 0.8).tolist()]
+        [0.0, 0.5, 1.0]
     """
     where = "volshade.obscurance.threshold"
     obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
@@ -657,27 +664,30 @@ def obscurance_shading(
         ``(...)`` or ``(..., 3)`` intensity, in the dtype of ``normal``.
 
     Raises:
-        ValueError: vectors whose last axis is not 3.
+        ValueError: vectors whose last axis is not 3; NaN or inf in ``normal``,
+            ``light``, ``view`` or ``obscurance`` (at run time).
 
     References:
         Ruiz et al. 2008, eq. (5).
 
     Example:
         >>> n = jnp.array([[0.0, 0.0, 1.0]])
-        >>> obscurance_shading(n, n[0], n[0], jnp.array([0.5]), k_d=1.0, k_s=0.0)
-        Array([0.5], dtype=float32)
+        >>> obscurance_shading(n, n[0], n[0], jnp.array([0.5]), k_d=1.0, k_s=0.0).tolist()
+        [0.5]
     """
     where = "volshade.obscurance.obscurance_shading"
     normal = _checks.finite(_checks.as_float_array(normal, "normal", where), "normal", where)
     dtype = normal.dtype
     if normal.ndim < 1 or normal.shape[-1] != 3:
         raise ValueError(f"{where}: `normal` must have shape (..., 3), got {normal.shape}.")
-    light = jnp.asarray(light, dtype)
-    view = jnp.asarray(view, dtype)
+    vectors = {}
     for name, vec in (("light", light), ("view", view)):
+        vec = _checks.as_float_array(vec, name, where).astype(dtype)
         if vec.ndim < 1 or vec.shape[-1] != 3:
             raise ValueError(f"{where}: `{name}` must have shape (3,) or (..., 3), "
                              f"got {vec.shape}.")
+        vectors[name] = _checks.finite(vec, name, where)
+    light, view = vectors["light"], vectors["view"]
     obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
                                 "obscurance", where).astype(dtype)
     batch = normal.shape[:-1]

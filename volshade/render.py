@@ -18,6 +18,7 @@ gradients is one compositing state per sample, not every intermediate.
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -89,7 +90,9 @@ def march(
 
     Raises:
         ValueError / TypeError: bad shapes, dtypes, options or sizes; NaN or inf
-            in ``volume`` or ``ambient`` (raised when the data is seen).
+            in ``volume``, ``ambient`` or ``background``, a negative
+            ``opacity_scale``, or transfer-function control values out of order or
+            outside [0, 1] (raised when the data is seen).
     """
     where = "volshade.render"
     volume = _checks.volume(volume, "volume", where)
@@ -110,6 +113,18 @@ def march(
         if opacity_scale.shape != volume.shape:
             raise ValueError(f"{where}: `opacity_scale` must have shape {volume.shape}, "
                              f"got {opacity_scale.shape}.")
+        opacity_scale = eqx.error_if(opacity_scale, jnp.any(opacity_scale < 0),
+                                     f"{where}: `opacity_scale` must be >= 0 (a factor on "
+                                     f"opacity).")
+    if not isinstance(transfer, TransferFunction):
+        raise TypeError(f"{where}: `transfer` must be a volshade.TransferFunction, got "
+                        f"{type(transfer).__name__}.")
+    transfer = transfer._valid()
+    background = _checks.as_float_array(background, "background", where).astype(dtype)
+    if background.shape != (3,):
+        raise ValueError(f"{where}: `background` must be an RGB triple, shape (3,), got "
+                         f"{background.shape}.")
+    background = _checks.finite(background, "background", where)
     phong = Phong() if phong is None else phong
     measured = composition == "importance"
     importance = Importance() if importance is None else importance
@@ -126,7 +141,7 @@ def march(
     half_extent = half_extent.astype(dtype)
     origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())
     batch = origins.shape[:-1]
-    bg = jnp.broadcast_to(jnp.asarray(background, dtype), (*batch, 3))
+    bg = jnp.broadcast_to(background, (*batch, 3))
     t_near, t_far = intersect_box(origins, directions, half_extent)
     hit = t_far > t_near
     length = jnp.where(hit, t_far - t_near, 0)

@@ -27,6 +27,7 @@ axis order ``(d, h, w)``, e.g. ``volshade.directions.icosphere(1)`` (42).
 """
 
 import functools
+import numbers
 from collections.abc import Callable
 
 import equinox as eqx
@@ -40,6 +41,7 @@ from ._types import Array, ArrayLike, Float
 from .directions import icosphere_points
 from .gradient import gradient_magnitude, regression_gradient
 from .obscurance import (
+    RHO_FUNCTIONS,
     _direction_array,
     _line_groups,
     _shear,
@@ -73,9 +75,9 @@ def saliency(
     $S(p) = |\nabla O(p)| / \max_q |\nabla O(q)|$, with $\nabla O$ from
     :func:`volshade.gradient.regression_gradient` (exact for linear fields). For
     a multi-channel (e.g. RGB colour-bleeding) obscurance the magnitude is the
-    Frobenius norm over channels and components. The minimum of the field is
-    subtracted first (the gradient is unchanged) so that a constant field gives
-    exactly 0 everywhere; where the maximum magnitude is 0 the result is 0.
+    Frobenius norm over channels and components. A constant field gives exactly 0
+    everywhere (the central differences cancel exactly); where the maximum
+    magnitude is 0 the result is 0.
 
     Args:
         obscurance: ``(D, H, W)`` or ``(D, H, W, C)`` obscurance field.
@@ -104,6 +106,9 @@ def saliency(
     arr = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
                          "obscurance", where)
     if arr.ndim == 4:
+        if arr.shape[-1] == 0:
+            raise ValueError(f"{where}: `obscurance` must have at least one channel, got "
+                             f"shape {arr.shape}.")
         _checks.check_ndim(arr[..., 0], 3, "obscurance", where, "(D, H, W) or (D, H, W, C)")
         channels = [arr[..., c] for c in range(arr.shape[-1])]
     elif arr.ndim == 3:
@@ -290,7 +295,10 @@ def projected_area(
     """
     where = "volshade.saliency.projected_area"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
-    level = jnp.asarray(level, opacity.dtype)
+    level = _checks.as_float_array(level, "level", where).astype(opacity.dtype)
+    level = eqx.error_if(level, ~jnp.isfinite(level),
+                         f"{where}: `level` must be a finite opacity (0 counts every voxel "
+                         f"with any opacity).")
 
     # The mask of non-empty voxels is swept (opacity correction keeps 0 and 1 fixed).
     mask = jnp.where(opacity > level, jnp.ones_like(opacity), jnp.zeros_like(opacity))
@@ -375,7 +383,8 @@ def modulate_opacity(
         ``(D, H, W)`` opacities in [0, 1], in the dtype of ``opacity``.
 
     Raises:
-        ValueError: shapes differ, ``boost_top`` outside (0, 1].
+        ValueError: shapes differ, ``boost_top`` outside (0, 1]; ``opacity`` outside
+            [0, 1] or NaN/inf in either volume (at run time).
 
     Example:
         >>> a = jnp.full((1, 1, 3), 0.5)
@@ -384,15 +393,11 @@ def modulate_opacity(
         [[[0.0, 0.25, 1.0]]]
     """
     where = "volshade.saliency.modulate_opacity"
-    opacity = _checks.volume(opacity, "opacity", where)
+    opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
     saliency = _checks.volume(saliency, "saliency", where).astype(opacity.dtype)
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same shape, got "
                          f"{saliency.shape} and {opacity.shape}.")
-    if boost_top is not None and not (isinstance(boost_top, int | float)
-                                      and 0 < boost_top <= 1):
-        raise ValueError(f"{where}: `boost_top` must be None or a fraction in (0, 1], "
-                         f"got {boost_top!r}.")
     factor = opacity_factor(saliency, threshold=threshold, multiply=multiply,
                             boost_top=boost_top)
     return jnp.minimum(opacity * factor, 1)
@@ -411,6 +416,7 @@ def opacity_factor(
     :func:`modulate_opacity`). The renderer multiplies interpolated opacities by it.
     """
     dtype = saliency.dtype
+    boost_top = _boost_top(boost_top, "volshade.opacity_factor")
     threshold = _checks.as_float_array(threshold, "threshold", "volshade.opacity_factor")
     threshold = eqx.error_if(threshold.astype(dtype), ~jnp.isfinite(threshold),
                              "volshade.opacity_factor: `threshold` must be a finite saliency "
@@ -420,6 +426,17 @@ def opacity_factor(
         top = saliency >= 1 - jnp.asarray(boost_top, dtype)
         factor = jnp.where(top, 2 * factor, factor)
     return jnp.where(saliency < threshold, jnp.zeros_like(factor), factor)
+
+
+def _boost_top(value, where: str) -> float | None:
+    """``boost_top`` (static): ``None`` or a real fraction in (0, 1]."""
+    if value is None:
+        return None
+    if (isinstance(value, bool) or not isinstance(value, numbers.Real)
+            or not 0 < value <= 1):
+        raise ValueError(f"{where}: `boost_top` must be None or a fraction in (0, 1] (the "
+                         f"top fraction of saliency whose opacity is doubled), got {value!r}.")
+    return float(value)
 
 
 
@@ -439,6 +456,17 @@ class SaliencyModulation(eqx.Module):
     size: int = eqx.field(static=True, default=5)
     multiply: bool = eqx.field(static=True, default=True)
     boost_top: float | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        where = "volshade.SaliencyModulation"
+        _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
+        if self.level not in (0, 1, 2, 3):
+            raise ValueError(f"{where}: `level` must be 0, 1, 2 or 3 (12, 42, 162, 642 "
+                             f"directions), got {self.level!r}.")
+        if self.size not in (3, 5):
+            raise ValueError(f"{where}: `size` must be 5 (the paper's) or 3, got "
+                             f"{self.size!r}.")
+        _boost_top(self.boost_top, where)
 
     def __call__(self, volume: Float[Array, "D H W"], transfer) -> Float[Array, "D H W"]:
         """The opacity factor volume for ``volume`` classified by ``transfer``."""

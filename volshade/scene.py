@@ -41,7 +41,10 @@ def _volume_ambient(scene: "Scene") -> Array:
 
 
 def _lao_ambient(scene: "Scene") -> Array:
-    return scene.lao(scene.transfer.opacity(scene.volume))
+    # the corrected form reads alpha as the opacity of a one-voxel step (the geometric
+    # mean edge for anisotropic voxels); the seeds' form takes the classified opacity
+    step = math.prod(scene.spacing) ** (1 / 3) if scene.lao.opacity_correction else None
+    return scene.lao(scene.transfer.opacity(scene.volume, step=step))
 
 
 def _obscurance_ambient(scene: "Scene") -> Array:
@@ -81,7 +84,10 @@ class Scene(eqx.Module):
         ambient_volume: ``(D, H, W)`` or ``(D, H, W, 3)`` precomputed ambient
             factor in [0, 1] for ``ambient="volume"``.
         lao: :class:`~volshade.lao.LocalAmbientOcclusion` parameters (radius and
-            offset in voxels are leaves).
+            offset in voxels are leaves). It gets the transfer function's opacity
+            as classified (per ``step0`` mm, the seeds' form) or, with
+            ``opacity_correction``, corrected to a one-voxel step (the geometric
+            mean of ``spacing``), as :func:`~volshade.lao.lao` reads it then.
         obscurance: :class:`~volshade.obscurance.ObscuranceParams`.
         modulation: opacity modulation: ``"none"`` or ``"saliency"`` (obscurance
             saliency, with ``saliency``).
@@ -98,7 +104,7 @@ class Scene(eqx.Module):
 
     Example:
         >>> vol = jnp.zeros((8, 8, 8))
-        >>> scene = Scene(volume=vol, transfer=preset("grey"))
+        >>> scene = Scene(volume=vol, transfer=vs.transfer.preset("grey"))
         >>> render(scene, Camera.orbit(image_shape=(4, 4))).shape
         (4, 4, 4)
     """
@@ -193,8 +199,10 @@ def render(scene: Scene, camera: Camera) -> Float[Array, "H W 4"]:
         ``(H, W, 4)`` RGB (background blended in) and accumulated opacity.
 
     Example:
-        >>> scene = Scene(volume=vs.data.phantom("shells"), transfer=vs.transfer.preset("shells"))
-        >>> image = render(scene, Camera.orbit(azimuth=30, elevation=20))
+        >>> scene = Scene(volume=vs.data.phantom("shells", shape=16),
+        ...               transfer=vs.transfer.preset("shells"))
+        >>> render(scene, Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))).shape
+        (8, 8, 4)
     """
     scene, camera = _finite_parameters(scene, camera)
     ambient = AMBIENT[scene.ambient](scene)

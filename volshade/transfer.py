@@ -65,6 +65,21 @@ class TransferFunction(eqx.Module):
             raise ValueError(f"{_WHERE}: `opacities` must have shape {k} to match `points`, "
                              f"got {jnp.shape(self.opacities)}.")
         _checks.positive_float(self.step0, "step0", _WHERE)
+        values = [_checks.concrete(x) for x in (self.points, self.colors, self.opacities)]
+        if all(v is not None for v in values):  # traced values are checked when used
+            problem = _control_value_problem(*values)
+            if problem:
+                raise ValueError(f"{_WHERE}: {problem}")
+
+    def _valid(self) -> "TransferFunction":
+        """This transfer function with run-time checks of its control values, which a
+        fit or ``eqx.tree_at`` may have set (``__check_init__`` sees only concrete ones)."""
+        order = jnp.any(jnp.diff(self.points) <= 0) | ~jnp.all(jnp.isfinite(self.points))
+        tf = eqx.error_if(self, order, f"{_WHERE}: {_ORDER}")
+        colors, opacities = tf.colors, tf.opacities
+        out = jnp.any(~((colors >= 0) & (colors <= 1))) | \
+            jnp.any(~((opacities >= 0) & (opacities <= 1)))
+        return eqx.error_if(tf, out, f"{_WHERE}: {_RANGE}")
 
     @classmethod
     def from_points(
@@ -83,11 +98,9 @@ class TransferFunction(eqx.Module):
                              f"got shape {table.shape}.")
         if not np.all(np.isfinite(table)):
             raise ValueError(f"{where}: `points` contains NaN or inf.")
-        if np.any(np.diff(table[:, 0]) <= 0):
-            raise ValueError(f"{where}: intensities must be strictly increasing, "
-                             f"got {table[:, 0].tolist()}.")
-        if np.any((table[:, 1:] < 0) | (table[:, 1:] > 1)):
-            raise ValueError(f"{where}: colours and opacities must lie in [0, 1].")
+        problem = _control_value_problem(table[:, 0], table[:, 1:4], table[:, 4])
+        if problem:
+            raise ValueError(f"{where}: {problem}")
         dtype = jnp.result_type(float) if dtype is None else dtype
         return cls(jnp.asarray(table[:, 0], dtype), jnp.asarray(table[:, 1:4], dtype),
                    jnp.asarray(table[:, 4], dtype), step0=step0)
@@ -119,19 +132,37 @@ class TransferFunction(eqx.Module):
             ValueError: NaN or inf in ``volume`` (interpolation would clamp an
                 infinite value to the last control point's opacity, silently).
         """
-        return self._opacity(_finite_values(volume, "opacity"), step)
+        return self._valid()._opacity(_finite_values(volume, "opacity"), step)
 
     def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
         r"""Extinction $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
-        return -log1m(self._opacity(_finite_values(volume, "extinction"), None)) / self.step0
+        alpha0 = self._valid()._opacity(_finite_values(volume, "extinction"), None)
+        return -log1m(alpha0) / self.step0
 
     def color(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape 3"]:
         """RGB colour of each value, shape ``(*shape, 3)``; NaN or inf is refused."""
-        return self._color(_finite_values(volume, "color"))
+        return self._valid()._color(_finite_values(volume, "color"))
 
     def __call__(self, volume: Float[Array, "*shape"], *, step=None):
         """``(color, opacity)`` of each value; NaN or inf is refused."""
-        return self._rgba(_finite_values(volume, "__call__"), step)
+        return self._valid()._rgba(_finite_values(volume, "__call__"), step)
+
+
+_ORDER = ("`points` must be finite and strictly increasing (sort the control points; "
+          "a fit should keep their order, e.g. through cumulative positive gaps).")
+_RANGE = ("`colors` and `opacities` must lie in [0, 1] (a fit should keep them there, e.g. "
+          "through a sigmoid).")
+
+
+def _control_value_problem(points: np.ndarray, colors: np.ndarray,
+                           opacities: np.ndarray) -> str | None:
+    """What is wrong with concrete control values, or None."""
+    if not np.all(np.isfinite(points)) or np.any(np.diff(points) <= 0):
+        return f"{_ORDER} Got {points.tolist()}."
+    if not (np.all((colors >= 0) & (colors <= 1)) and np.all((opacities >= 0)
+                                                            & (opacities <= 1))):
+        return _RANGE
+    return None
 
 
 def _finite_values(volume, method: str) -> Array:
