@@ -223,6 +223,18 @@ def test_load_nifti_reorients_to_ras(tmp_path, xyz):
     assert nib.aff2axcodes(img.affine) == ("A", "R", "S")
 
 
+def test_load_nifti_spacing_follows_the_affine_not_pixdim(tmp_path, xyz):
+    # pixdim (1, 1, 1) disagreeing with the affine's (2, 3, 4) mm: the same geometry stored
+    # as RAS (not reoriented) or LAS (reoriented) must give the same spacing
+    spacings = []
+    for name, sign in (("ras.nii", 1.0), ("las.nii", -1.0)):
+        img = nib.Nifti1Image(xyz, np.diag([2.0 * sign, 3.0, 4.0, 1.0]))
+        img.header.set_zooms((1.0, 1.0, 1.0))
+        nib.save(img, str(tmp_path / name))
+        spacings.append(data.load_nifti(tmp_path / name, normalize=False)[1])
+    assert spacings == [(4.0, 3.0, 2.0), (4.0, 3.0, 2.0)]
+
+
 def test_load_nifti_4d(tmp_path, xyz):
     single = _write(tmp_path / "one.nii", xyz[..., None], np.eye(4))
     vol, _ = data.load_nifti(single, normalize=False)

@@ -47,6 +47,15 @@ def test_trilinear_channels_jit_vmap_grad():
     np.testing.assert_allclose(jnp.sum(g), 6.0)  # trilinear weights sum to 1 inside
 
 
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_trilinear_half_precision_keeps_its_coordinates(dtype):
+    # coordinates are not rounded to the volume's dtype (bfloat16 cannot hold 257)
+    vol = jnp.zeros((1, 1, 300), dtype).at[0, 0, 257].set(1).at[0, 0, 200].set(1)
+    out = trilinear(vol, jnp.asarray([[0.0, 0.0, 257.0], [0.0, 0.0, 199.75]]))
+    assert out.dtype == dtype
+    np.testing.assert_allclose(np.asarray(out, np.float64), [1.0, 0.75])
+
+
 def test_trilinear_errors():
     with pytest.raises(ValueError, match="mode"):
         trilinear(jnp.zeros((2, 2, 2)), jnp.zeros(3), mode="wrap")
@@ -94,6 +103,8 @@ def test_regression_gradient_dtype_jit_vmap_grad_and_errors():
     assert np.all(np.isfinite(gr))
     with pytest.raises(ValueError, match="3 or 5"):
         regression_kernel(4)
+    with pytest.raises(ValueError, match="3 or 5"):  # a static size, not a float
+        regression_kernel(3.0)
     with pytest.raises(ValueError, match="weighting"):
         regression_kernel(3, weighting="gauss")
     with pytest.raises(ValueError, match="spacing"):

@@ -331,12 +331,15 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     The image is first reoriented to the closest canonical RAS+ orientation
     (``nibabel.as_closest_canonical``); its ``(x, y, z)`` array is then transposed to
     ``(z, y, x)`` so that ``d`` runs inferior -> superior, ``h`` posterior ->
-    anterior and ``w`` left -> right, and the spacing ``img.header.get_zooms()[:3]``
-    is reversed into the same ``(d, h, w)`` order. Intensities include the header's
-    ``scl_slope``/``scl_inter`` scaling. With ``normalize=True`` (the default, since
-    transfer functions work on ``[0, 1]``) they are mapped linearly,
+    anterior and ``w`` left -> right, and the spacing (the voxel sizes of the
+    reoriented affine, ``nibabel.affines.voxel_sizes``; the header's pixdim can
+    disagree with the affine) is reversed into the same ``(d, h, w)`` order.
+    Intensities include the header's ``scl_slope``/``scl_inter`` scaling. With
+    ``normalize=True`` (the default, since transfer functions work on ``[0, 1]``)
+    they are mapped linearly,
     $v' = (v - v_\min) / (v_\max - v_\min)$, to ``[0, 1]`` (a constant image gives
-    zeros); with ``normalize=False`` the raw intensities are returned, unchanged.
+    zeros); with ``normalize=False`` the raw intensities are returned, as ``float32``
+    (integers above $2^{24}$ are rounded).
 
     Args:
         path: the ``.nii`` or ``.nii.gz`` file.
@@ -384,7 +387,9 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
         raise ValueError(f"{where}: {str(path)!r} has {n_bad} NaN or inf voxels; clean them "
                          f"(e.g. `np.nan_to_num`) and save the image again.")
     vol = np.ascontiguousarray(np.transpose(data, (2, 1, 0)))
-    zooms = tuple(float(z) for z in img.header.get_zooms()[:3])
+    # from the affine actually used: pixdim may disagree with it, and nibabel rewrites
+    # it only when it reorients, so it would depend on the file's storage order
+    zooms = tuple(float(z) for z in nibabel.affines.voxel_sizes(img.affine))
     spacing = (zooms[2], zooms[1], zooms[0])
     if normalize:
         lo, hi = vol.min(), vol.max()

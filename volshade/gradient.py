@@ -44,7 +44,7 @@ def regression_kernel(
             (w = 1/|x|, Neumann et al.'s) or ``"uniform"``.
     """
     where = "volshade.gradient.regression_kernel"
-    if size not in (3, 5):
+    if isinstance(size, bool) or not isinstance(size, int | np.integer) or size not in (3, 5):
         raise ValueError(f"{where}: `size` must be 3 or 5 (neighbourhood edge), got {size!r}.")
     weight_fn = _checks.option(weighting, _WEIGHTS, "weighting", where)
     sp = np.asarray(_checks.spacing(spacing, where))

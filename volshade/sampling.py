@@ -6,8 +6,9 @@ index coordinates by dividing by the voxel spacing, which is how anisotropic
 spacing is honoured. Two boundary rules are defined:
 
 * ``"constant"``: the volume is surrounded by zeros, so values fade linearly to
-  0 over the half voxel beyond the outermost centres (an opacity volume is
-  empty outside; used by ambient occlusion and obscurances).
+  0 over the voxel beyond the outermost centres (half the edge value at the cell
+  faces, 0 one voxel out; an opacity volume is empty outside; used by ambient
+  occlusion and obscurances).
 * ``"nearest"``: points outside take the value of the closest voxel (used by
   the renderer inside the box of voxel cells, so a uniform volume samples as a
   uniform medium right up to its faces).
@@ -53,7 +54,9 @@ def trilinear(
     where = "volshade.sampling.trilinear"
     scipy_mode = _checks.option(mode, _MODES, "mode", where)
     volume = _checks.as_float_array(volume, "volume", where)
-    points = jnp.asarray(points, dtype=volume.dtype)
+    # coordinates in at least float32: half precision cannot even hold index 257
+    work = jnp.promote_types(volume.dtype, jnp.float32)
+    points = jnp.asarray(points, dtype=work)
     if volume.ndim not in (3, 4):
         raise ValueError(f"{where}: `volume` must be (D, H, W) or (D, H, W, C), "
                          f"got shape {volume.shape}.")
@@ -62,7 +65,8 @@ def trilinear(
 
     def scalar(vol: Array) -> Array:
         coords = [points[..., i] for i in range(3)]
-        return map_coordinates(vol, coords, order=1, mode=scipy_mode, cval=0.0)
+        out = map_coordinates(vol.astype(work), coords, order=1, mode=scipy_mode, cval=0.0)
+        return out.astype(volume.dtype)
 
     if volume.ndim == 3:
         return scalar(volume)
