@@ -21,6 +21,7 @@ import importlib
 import json
 import pathlib
 import platform
+import subprocess
 import sys
 
 import jax
@@ -44,6 +45,19 @@ def _format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _commit() -> str:
+    """The checkout's commit (``+changes`` when the tree differs), or "unknown" without git."""
+    root = pathlib.Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, check=True,
+                              capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=root, check=True, capture_output=True, text=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+changes" if dirty.strip() else "")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -62,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         jax_version=jax.__version__,
         python=platform.python_version(),
         machine=platform.machine(),
+        commit=_commit(),
         date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     )
     print(f"# {result['title']}  [{result['device']}, jax {result['jax_version']}]")
