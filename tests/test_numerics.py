@@ -87,3 +87,20 @@ def test_correct_opacity_of_a_zero_length_segment_is_zero():
     np.testing.assert_array_equal(nm.correct_opacity(alpha, 0.0), 0.0)
     g = jax.grad(lambda a: jnp.sum(nm.correct_opacity(a, 0.0)))(alpha)
     np.testing.assert_array_equal(g, 0.0)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_correct_opacity_float_below_one_counts_as_one(dtype):
+    # an interpolated 1 can round to the float just below 1, where the slope
+    # r (1 - a)^(r - 1) would be ~1e9 for r < 1: it counts as 1 (and only that float)
+    below = jnp.asarray(1 - jnp.finfo(dtype).epsneg, dtype)
+    assert float(nm.correct_opacity(below, 0.4)) == 1.0
+    assert float(jax.grad(nm.correct_opacity)(below, 0.4)) == 0.0
+    two_below = jnp.nextafter(below, jnp.asarray(0, dtype))
+    assert float(nm.correct_opacity(two_below, 1.0)) == float(two_below)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_correct_opacity_half_precision_keeps_values_below_one(dtype):
+    below = jnp.asarray(1 - jnp.finfo(dtype).epsneg, dtype)
+    assert float(nm.correct_opacity(below, 1.0)) == float(below)  # the identity

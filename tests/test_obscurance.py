@@ -11,6 +11,7 @@ from helpers import check_grad_fd
 from volshade.directions import fibonacci, icosphere, icosphere_points
 from volshade.obscurance import (
     RHO_FUNCTIONS,
+    ObscuranceParams,
     _direction_array,
     _occluder_distances,
     _static_dirs,
@@ -295,6 +296,11 @@ def test_errors():
         obscurance(vol, directions=DIRS12, d_max=-1)
     with pytest.raises(ValueError, match="d_max"):  # concrete arrays: at trace time too
         obscurance(vol, directions=DIRS12, d_max=np.array(-1.0))
+    assert ObscuranceParams(level=4).level == 4  # icosphere levels 0-4
+    with pytest.raises(ValueError, match="level"):
+        ObscuranceParams(level=5)
+    half = obscurance(vol, directions=DIRS12, d_max=jnp.asarray(2.0, jnp.bfloat16))
+    np.testing.assert_array_equal(half, obscurance(vol, directions=DIRS12, d_max=2.0))
     for not_a_number in (True, "2"):
         with pytest.raises(TypeError, match="d_max"):
             obscurance(vol, directions=DIRS12, d_max=not_a_number)

@@ -250,6 +250,12 @@ def test_errors():
                           ({"size": 4}, "size")):
         with pytest.raises(ValueError, match=match):
             SaliencyModulation(**kwargs)
+    assert SaliencyModulation(level=4).level == 4  # 2562 directions, as icosphere allows
+    for boost in (jnp.float32(0.5), np.asarray(0.5)):  # concrete 0-d arrays are numbers
+        np.testing.assert_allclose(np.asarray(opacity_factor(jnp.ones((1, 1, 2)),
+                                                             boost_top=boost)), 2.0)
+    with pytest.raises(TypeError, match="static"):
+        jax.jit(lambda b: opacity_factor(v, boost_top=b))(0.5)
     with pytest.raises(ValueError, match="at least one channel"):
         saliency(jnp.zeros((4, 4, 4, 0)))
     with pytest.raises(Exception, match="`level` must be a finite"):

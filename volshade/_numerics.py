@@ -77,15 +77,18 @@ def correct_opacity(alpha: ArrayLike, ratio: ArrayLike) -> Array:
     $\alpha' = 1 - (1 - \alpha)^{r}$ with $r = \Delta s / \Delta s_0 \ge 0$, computed as
     ``-expm1(r * log1p(-alpha))``. ``alpha = 0`` stays exactly 0 and a segment of length
     0 (``r = 0``) has opacity exactly 0, also for ``alpha = 1``; otherwise ``alpha = 1``
-    stays exactly 1, and so does an ``alpha`` within one ulp (``eps``) of 1, the
-    rounding of an interpolated 1. There the derivative $r (1 - \alpha)^{r - 1}$ is 1 for $r = 1$
-    (the identity) and 0 for $r > 1$, both returned exactly; for $r < 1$ it is
-    infinite, and 0 is returned so that gradients stay finite.
+    stays exactly 1, and so does, in float32 and float64, the float just below 1
+    (``1 - finfo.epsneg``, what an interpolated 1 can round to). At 1 the derivative
+    $r (1 - \alpha)^{r - 1}$ is 1 for $r = 1$ (the identity) and 0 for $r > 1$, both
+    returned exactly; for $r < 1$ it is infinite, and 0 is returned so that gradients
+    stay finite.
     """
     alpha, ratio = jnp.asarray(alpha), jnp.asarray(ratio)
-    # within one ulp of 1 counts as 1: an interpolated opacity of 1 can round to
-    # 1 - eps/2, where the slope r (1 - alpha)^(r - 1) would be ~1e9 (float64, r < 1)
-    opaque = alpha >= 1 - jnp.finfo(jnp.result_type(alpha, float)).eps
+    # in float32/64 the float just below 1 counts as 1: an interpolated opacity of 1 can
+    # round to it, where the slope r (1 - alpha)^(r - 1) would be ~1e9 (float64, r < 1);
+    # in half precision that slope stays moderate, and the ulp is too coarse to snap
+    info = jnp.finfo(jnp.result_type(alpha, float))
+    opaque = alpha >= (1 - info.epsneg if info.bits >= 32 else 1)
     safe_alpha = jnp.where(opaque, jnp.zeros_like(alpha), alpha)
     corrected = -jnp.expm1(ratio * jnp.log1p(-safe_alpha))
     # the opaque branch: 1, with the slope 1 of the identity when r = 1, and 0 for r = 0

@@ -75,7 +75,7 @@ import numpy as np
 from . import _checks
 from ._numerics import safe_div, safe_normalize, safe_pow, safe_sqrt
 from ._types import Array, ArrayLike, Float
-from .directions import icosphere_points
+from .directions import _check_level, icosphere_points
 
 __all__ = [
     "RHO_FUNCTIONS",
@@ -365,7 +365,9 @@ def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
     """``d_max`` as a scalar array: refused at trace time when concrete, at run time
     (``eqx.error_if``) when traced."""
     if isinstance(d_max, bool | str | bytes) or (
-            isinstance(d_max, np.ndarray | jax.Array) and d_max.dtype.kind not in "iuf"):
+            isinstance(d_max, np.ndarray | jax.Array)
+            and not (jnp.issubdtype(d_max.dtype, jnp.floating)
+                     or jnp.issubdtype(d_max.dtype, jnp.integer))):
         raise TypeError(f"{where}: `d_max` must be a number (voxels), got {d_max!r}.")
     try:
         arr = jnp.asarray(d_max, dtype)
@@ -748,9 +750,7 @@ class ObscuranceParams(eqx.Module):
         if self.density not in _DENSITIES:
             raise ValueError(f"{where}: unknown density {self.density!r}; valid values are "
                              f"{', '.join(map(repr, _DENSITIES))}.")
-        if self.level not in (0, 1, 2, 3):
-            raise ValueError(f"{where}: `level` must be 0, 1, 2 or 3 (12, 42, 162, 642 "
-                             f"directions), got {self.level!r}.")
+        _check_level(self.level, where)
 
     def __call__(self, volume: Float[Array, "D H W"], transfer) -> Array:
         """Thresholded obscurance of ``volume`` classified by ``transfer``: ``(D, H, W)``,

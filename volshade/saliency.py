@@ -38,7 +38,7 @@ import numpy as np
 from . import _checks
 from ._numerics import correct_opacity, safe_div
 from ._types import Array, ArrayLike, Float
-from .directions import icosphere_points
+from .directions import _check_level, icosphere_points
 from .gradient import gradient_magnitude, regression_gradient
 from .obscurance import (
     RHO_FUNCTIONS,
@@ -432,6 +432,13 @@ def _boost_top(value, where: str) -> float | None:
     """``boost_top`` (static): ``None`` or a real fraction in (0, 1]."""
     if value is None:
         return None
+    if isinstance(value, jax.core.Tracer):
+        raise TypeError(f"{where}: `boost_top` sets which voxels are doubled and must be a "
+                        f"static number, not a traced value; close over it instead.")
+    if isinstance(value, np.ndarray | jax.Array) and value.shape == () and (
+            jnp.issubdtype(value.dtype, jnp.floating) or jnp.issubdtype(value.dtype,
+                                                                        jnp.integer)):
+        value = float(value)
     if (isinstance(value, bool) or not isinstance(value, numbers.Real)
             or not 0 < value <= 1):
         raise ValueError(f"{where}: `boost_top` must be None or a fraction in (0, 1] (the "
@@ -460,9 +467,7 @@ class SaliencyModulation(eqx.Module):
     def __check_init__(self):
         where = "volshade.SaliencyModulation"
         _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
-        if self.level not in (0, 1, 2, 3):
-            raise ValueError(f"{where}: `level` must be 0, 1, 2 or 3 (12, 42, 162, 642 "
-                             f"directions), got {self.level!r}.")
+        _check_level(self.level, where)
         if self.size not in (3, 5):
             raise ValueError(f"{where}: `size` must be 5 (the paper's) or 3, got "
                              f"{self.size!r}.")
