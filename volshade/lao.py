@@ -52,7 +52,8 @@ of a shifted read is the opposite shift, so the backward pass is gather- and
 scatter-free as well; its memory is about $2\sqrt{M} + 8$ volumes for any $L$.
 (A variant that stored each chunk's reads was faster on CPU but slower and twice
 as memory-hungry on an H200, so it was not kept.) Forward mode (``jax.jvp``) is not
-available through the custom VJP; ``directions`` are not differentiated.
+available through the custom VJP (optimistix least-squares solvers then need
+``options=dict(jac="bwd")``); ``directions`` are not differentiated.
 
 **Bricks** (``brick_size``): bricks with no opacity within reach get AO = 1 and
 are not marched; the active ones are compacted and marched in groups, ``vmap``-ped
