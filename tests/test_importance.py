@@ -51,7 +51,8 @@ def reference_importance(p, intensity, tau, m_g, normal, view, light, depth):
                  + q["silhouette"] * sil + q["unocclusion"] * (q["unocclusion_offset"] - d)
                  + q["lighting"] * light_imp)
         out.append(q["global_weight"] * total)
-        scales.append(np.exp(-q["darkening"] * sil) if q["silhouette"] * q["global_weight"] else 1)
+        strength = min(max(q["global_weight"], 0.0), 1.0)
+        scales.append(np.exp(-q["darkening"] * sil * strength) if q["silhouette"] else 1)
     return np.array(out), np.array(scales)
 
 
@@ -158,6 +159,11 @@ def test_colour_scale_only_with_silhouette_weight():
     # context rays (per-ray global weight 0) are not darkened
     _, scale = sample_importance(Importance(silhouette=1.0), **f, global_weight=jnp.zeros(10))
     np.testing.assert_array_equal(scale, 1)
+    # the darkening fades with the per-ray weight (focus plus context, sec. IV-D)
+    half = sample_importance(Importance(silhouette=1.0), **f, global_weight=jnp.full(10, 0.5))[1]
+    np.testing.assert_allclose(half, jnp.exp(-2 * sil))
+    more = sample_importance(Importance(silhouette=1.0), **f, global_weight=jnp.full(10, 3.0))[1]
+    np.testing.assert_allclose(more, jnp.exp(-4 * sil))
 
 
 HARD = {

@@ -16,7 +16,9 @@ are normalised here, and so is the normal $N$ (typically the gradient).
 Normals are turned to face the viewer before lighting (two-sided lighting), so
 the sign convention of the gradient does not matter. Intensities are expected
 in [0, 1]; $m_G$ is the gradient magnitude divided by its maximum over the
-volume (:func:`normalized_gradient_magnitude`), as in the paper.
+volume (:func:`normalized_gradient_magnitude`), as in the paper's eq. 9 and 10.
+The gradient measure (sec. IV-A3) uses $m_G$ too, where the paper writes the raw
+$|\nabla f|$: so $W_{gradient}$ does not depend on the volume's intensity scale.
 
 References:
     F. de Moura Pinto and C. M. D. S. Freitas, "Importance-aware composition for
@@ -214,9 +216,12 @@ def sample_importance(
 
     with $sil$ from eq. 9 (:func:`silhouetteness`), $I_{light}$ from eq. 10
     (:func:`lighting_importance`) and $c_u = 20$ (sec. IV-A5). The colour scale
-    is $e^{-k\, sil}$ (sec. IV-A4, $k = 4$), applied only where
-    $W_{global} W_{sil} \ne 0$, so the default :class:`Importance` and context
-    rays with zero global weight render exactly as standard DVR.
+    is $e^{-k\, sil\, w}$ with $w = \mathrm{clip}(W_{global}, 0, 1)$ (sec. IV-A4,
+    $k = 4$), applied only where $W_{sil} \ne 0$: full darkening at weight 1 or
+    more, none at 0, so the default :class:`Importance` and context rays with
+    zero global weight render exactly as standard DVR, and smooth in between, so
+    that the darkening fades with the focus weights as the importance does
+    (sec. IV-D: "a smooth transition ... by varying the per-ray-global weight").
 
     A measure whose inputs are not given is left out (it contributes 0):
     silhouetteness needs ``normal``, ``view`` and ``gradient_magnitude``; lighting
@@ -305,7 +310,9 @@ def _sample_importance(params, scalars, vectors, global_weight, *, check_finite:
         sil = silhouetteness(n, v, m_g, exponent=p["silhouette_exponent"],
                              start=p["silhouette_start"], end=p["silhouette_end"])
         total = total + p["silhouette"] * sil
-        scale = jnp.where(g * p["silhouette"] != 0, jnp.exp(-p["darkening"] * sil), scale)
+        strength = jnp.clip(g, 0, 1)
+        scale = jnp.where(p["silhouette"] != 0, jnp.exp(-p["darkening"] * sil * strength),
+                          scale)
         light_vec = vectors.get("light", v)
         total = total + p["lighting"] * lighting_importance(
             n, v, light_vec, m_g, specular_exponent=p["specular_exponent"],

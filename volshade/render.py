@@ -80,7 +80,9 @@ def march(
             importance is measured on the fly (:func:`~volshade.importance.sample_importance`)
             from its intensity, extinction, normalised gradient magnitude, normal,
             the view (= light, a headlight) and the optical depth in front of it;
-            the silhouette darkening scales its colour.
+            the silhouette darkening scales its colour. An opaque sample's
+            extinction is infinite; it is capped at ``-log(tiny) / step0`` (so
+            ln(1 + tau) is about 4.5 in float32 and 6.6 in float64 for 1 mm).
         focus: optional ``(H, W)`` per-ray global weights (focus plus context,
             :func:`~volshade.importance.focus_weights`), for ``composition="importance"``.
 
