@@ -222,6 +222,8 @@ def test_bad_input_errors(tmp_path):
         march(jnp.zeros((4, 4, 4)), tf, cam, opacity_scale=jnp.full((4, 4, 4), -1.0))
     with pytest.raises(TypeError, match="TransferFunction"):
         march(jnp.zeros((4, 4, 4)), "grey", cam)
+    with pytest.raises(Exception, match="outside the transfer function's control points"):
+        march(jnp.full((4, 4, 4), 255.0), tf, cam)  # e.g. a uint8 volume, not normalised
     unsorted = eqx.tree_at(lambda t: t.points, tf, tf.points[::-1])
     with pytest.raises(Exception, match="strictly increasing"):
         march(jnp.zeros((4, 4, 4)), unsorted, cam)
@@ -259,6 +261,21 @@ def test_cameras_with_no_image_are_refused():
         looking_up(up)
     for elevation in (90.0, -90.0, 89.95):  # looking along d is not degenerate
         assert np.all(np.isfinite(Camera.orbit(elevation=elevation, image_shape=(2, 2)).rays()[1]))
+
+
+def test_camera_from_a_view_direction():
+    for azimuth, elevation in ((30.0, 20.0), (-120.0, -45.0), (0.0, 90.0), (77.0, -90.0)):
+        orbit = Camera.orbit(azimuth=azimuth, elevation=elevation, image_shape=(4, 4))
+        view = (orbit.eye - orbit.target) / jnp.linalg.norm(orbit.eye - orbit.target)
+        cam = Camera.from_view(view, image_shape=(4, 4))
+        np.testing.assert_allclose(np.asarray(cam.eye), np.asarray(orbit.eye), atol=1e-12)
+        if abs(elevation) < 90:  # along d the azimuth (the image's roll) is taken as 0
+            np.testing.assert_allclose(np.asarray(cam.rays()[1]), np.asarray(orbit.rays()[1]),
+                                       atol=1e-12)
+    # lists and an int image size are accepted, as elsewhere in the API
+    cam = Camera(eye=[2.0, 0.0, 0.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0], fov=30.0,
+                 width=1.0, image_shape=5)
+    assert cam.image_shape == (5, 5) and cam.rays()[0].shape == (5, 5, 3)
 
 
 def test_camera_geometry_and_png(tmp_path):

@@ -15,8 +15,8 @@ def _tf(dtype=jnp.float64):
 
 def test_piecewise_linear_values():
     tf = _tf()
-    x = jnp.array([-1.0, 0.0, 0.25, 0.5, 0.75, 1.0, 2.0])
-    np.testing.assert_allclose(tf.opacity(x), [0, 0, 0.2, 0.4, 0.6, 0.8, 0.8])
+    x = jnp.array([0.0, 0.25, 0.5, 0.75, 1.0])  # outside [0, 1]: refused (below)
+    np.testing.assert_allclose(tf.opacity(x), [0, 0.2, 0.4, 0.6, 0.8])
     np.testing.assert_allclose(tf.color(jnp.array(0.75)), [0.5, 0, 0.5])
 
 
@@ -100,3 +100,12 @@ def test_features():
         feature_opacities(vol, [])
     with pytest.raises(ValueError, match="low < high"):
         IntervalFeature(0.5, 0.5)
+
+
+def test_values_outside_the_control_points_are_refused():
+    # a 0-255 volume through a [0, 1] transfer function would be one solid blob
+    tf = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (1.0, 1, 1, 1, 0.5)])
+    for method in (tf.opacity, tf.color, tf.extinction, tf):
+        with pytest.raises(Exception, match="outside the transfer function's control points"):
+            method(jnp.asarray([0.0, 0.5, 255.0]))
+    np.testing.assert_allclose(tf.opacity(jnp.asarray([0.0, 1.0])), [0.0, 0.5])  # ends inclusive

@@ -22,6 +22,17 @@ from ._types import Array, Float
 _PROJECTIONS = ("perspective", "orthographic")
 
 
+def _image_shape(shape) -> tuple:
+    """``(H, W)``; one int ``n`` means a square ``(n, n)`` image."""
+    if isinstance(shape, int | np.integer) and not isinstance(shape, bool):
+        return (int(shape), int(shape))
+    try:
+        return tuple(shape)
+    except TypeError as err:
+        raise TypeError(f"volshade.Camera: `image_shape` must be (H, W) or one int, got "
+                        f"{shape!r}.") from err
+
+
 class Camera(eqx.Module):
     """A pinhole (perspective) or orthographic camera in scene coordinates.
 
@@ -36,16 +47,17 @@ class Camera(eqx.Module):
         fov: vertical field of view in degrees (perspective).
         width: height of the view in scene units (orthographic); the width
             follows from the aspect ratio.
-        image_shape: ``(H, W)`` pixels (static).
+        image_shape: ``(H, W)`` pixels, or one int for a square image (static).
         projection: ``"perspective"`` or ``"orthographic"`` (static).
     """
 
-    eye: Float[Array, "3"]
-    target: Float[Array, "3"]
-    up: Float[Array, "3"]
-    fov: Float[Array, ""]
-    width: Float[Array, ""]
-    image_shape: tuple[int, int] = eqx.field(static=True, default=(256, 256))
+    eye: Float[Array, "3"] = eqx.field(converter=jnp.asarray)
+    target: Float[Array, "3"] = eqx.field(converter=jnp.asarray)
+    up: Float[Array, "3"] = eqx.field(converter=jnp.asarray)
+    fov: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    width: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    image_shape: tuple[int, int] = eqx.field(static=True, default=(256, 256),
+                                             converter=lambda s: _image_shape(s))
     projection: str = eqx.field(static=True, default="perspective")
 
     def __check_init__(self):
@@ -142,7 +154,32 @@ class Camera(eqx.Module):
                        jnp.asarray([1.0, 0.0, 0.0], dtype))
         return cls(target + jnp.asarray(distance, dtype) * direction, target, up,
                    jnp.asarray(fov, dtype), jnp.asarray(width, dtype),
-                   image_shape=tuple(image_shape), projection=projection)
+                   image_shape=image_shape, projection=projection)
+
+    @classmethod
+    def from_view(cls, view, **orbit_kwargs) -> "Camera":
+        """:meth:`orbit` camera whose eye lies along ``view`` from the target.
+
+        ``view`` is a ``(3,)`` direction from the volume towards the viewer in
+        ``(d, h, w)`` order, as :func:`volshade.most_salient_view` returns; the
+        other keywords are :meth:`orbit`'s (``distance``, ``image_shape``, ...).
+        Straight along ``±d`` the azimuth is undefined and taken as 0.
+
+        Example:
+            >>> cam = Camera.from_view(jnp.array([0.0, 1.0, 0.0]), image_shape=(8, 8))
+            >>> [round(float(x), 6) + 0.0 for x in cam.eye]  # +h: azimuth 0, from the front
+            [0.0, 2.5, 0.0]
+        """
+        if "azimuth" in orbit_kwargs or "elevation" in orbit_kwargs:
+            raise TypeError("volshade.Camera.from_view: the view sets azimuth and elevation; "
+                            "use Camera.orbit to give them.")
+        v = safe_normalize(jnp.asarray(view, jnp.result_type(float)))
+        if v.shape != (3,):
+            raise ValueError(f"volshade.Camera.from_view: `view` must be a (3,) direction, "
+                             f"got shape {v.shape}.")
+        elevation = jnp.rad2deg(jnp.arcsin(jnp.clip(v[0], -1, 1)))
+        azimuth = jnp.rad2deg(jnp.arctan2(v[2], v[1]))
+        return cls.orbit(azimuth=azimuth, elevation=elevation, **orbit_kwargs)
 
     def basis(self) -> tuple[Array, Array, Array]:
         """Orthonormal ``(forward, right, up)`` of the camera."""

@@ -582,7 +582,9 @@ def lao(
             Differentiable.
         opacity_correction: if True, correct each sample to the step,
             $\alpha' = 1 - (1-\alpha)^{\Delta s}$ ($\Delta s$ in voxels). False (the
-            default) is the seeds' form.
+            default) is the seeds' form, in which the same $M$ samples spread over a
+            longer ray as $R$ grows, so AO can rise with the radius; to compare radii
+            physically, use True.
         brick_size: if set, split the volume into bricks of this edge (voxels) and
             march only bricks with opacity within reach; the others get AO = 1
             without any work. Results and gradients equal the unbricked path (the

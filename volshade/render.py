@@ -32,7 +32,7 @@ from .gradient import regression_gradient
 from .importance import Importance, _sample_importance, normalized_gradient_magnitude
 from .sampling import trilinear
 from .shading import SHADERS, Phong
-from .transfer import TransferFunction
+from .transfer import TransferFunction, _in_domain
 
 
 def n_samples(shape: tuple[int, int, int], spacing, step: float) -> int:
@@ -122,6 +122,7 @@ def march(
         raise TypeError(f"{where}: `transfer` must be a volshade.TransferFunction, got "
                         f"{type(transfer).__name__}.")
     transfer = transfer._valid()
+    volume = _in_domain(transfer, volume, where)
     background = _checks.as_float_array(background, "background", where).astype(dtype)
     if background.shape != (3,):
         raise ValueError(f"{where}: `background` must be an RGB triple, shape (3,), got "

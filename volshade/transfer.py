@@ -130,22 +130,30 @@ class TransferFunction(eqx.Module):
 
         Raises:
             ValueError: NaN or inf in ``volume`` (interpolation would clamp an
-                infinite value to the last control point's opacity, silently).
+                infinite value to the last control point's opacity, silently), or
+                values outside ``[points[0], points[-1]]`` (the same clamp).
         """
-        return self._valid()._opacity(_finite_values(volume, "opacity"), step)
+        tf = self._valid()
+        return tf._opacity(_in_domain(tf, _finite_values(volume, "opacity"), _WHERE + ".opacity"),
+                           step)
 
     def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
         r"""Extinction $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
-        alpha0 = self._valid()._opacity(_finite_values(volume, "extinction"), None)
+        tf = self._valid()
+        where = _WHERE + ".extinction"
+        alpha0 = tf._opacity(_in_domain(tf, _finite_values(volume, "extinction"), where), None)
         return -log1m(alpha0) / self.step0
 
     def color(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape 3"]:
         """RGB colour of each value, shape ``(*shape, 3)``; NaN or inf is refused."""
-        return self._valid()._color(_finite_values(volume, "color"))
+        tf = self._valid()
+        return tf._color(_in_domain(tf, _finite_values(volume, "color"), _WHERE + ".color"))
 
     def __call__(self, volume: Float[Array, "*shape"], *, step=None):
         """``(color, opacity)`` of each value; NaN or inf is refused."""
-        return self._valid()._rgba(_finite_values(volume, "__call__"), step)
+        tf = self._valid()
+        where = _WHERE + ".__call__"
+        return tf._rgba(_in_domain(tf, _finite_values(volume, "__call__"), where), step)
 
 
 _ORDER = ("`points` must be finite and strictly increasing (sort the control points; "
@@ -167,6 +175,18 @@ def _control_value_problem(points: np.ndarray, colors: np.ndarray,
 
 def _finite_values(volume, method: str) -> Array:
     return _checks.finite(jnp.asarray(volume), "volume", f"{_WHERE}.{method}")
+
+
+def _in_domain(tf: TransferFunction, volume: Array, where: str) -> Array:
+    """``volume``, refused at run time where it leaves ``[points[0], points[-1]]``:
+    interpolation would give all those values the end points' colour and opacity
+    (a 0-255 volume through a [0, 1] transfer function renders as one solid blob)."""
+    outside = (jnp.min(volume) < tf.points[0]) | (jnp.max(volume) > tf.points[-1])
+    return eqx.error_if(volume, outside,
+                        f"{where}: `volume` has values outside the transfer function's control "
+                        f"points [points[0], points[-1]], which would all be classified like the "
+                        f"end points; normalise the volume (e.g. `volshade.data.load(..., "
+                        f"normalize=True)`) or give control points over its whole range.")
 
 
 class IntervalFeature(eqx.Module):
@@ -255,7 +275,11 @@ def _preset_head_skull() -> TransferFunction:
 
 
 def _preset_corner() -> TransferFunction:
-    # Intensities of the corner phantom's walls: 0.5 green, 0.75 blue, 1.0 white.
+    # Intensities of the corner phantom's walls: 0.5 green, 0.75 blue, 1.0 white. The walls
+    # are labels: rendered with this function (post-classification), the values between
+    # air and a wall pass through the lower walls' bands, so surfaces show banded rings of
+    # the other colours; experiments/corner_colour_bleeding.py classifies the walls first
+    # (a white transfer function and the colours as an ambient volume) for that reason.
     return TransferFunction.from_points([
         (0.0, 0, 0, 0, 0.0), (0.25, 0.1, 0.8, 0.1, 0.0), (0.5, 0.1, 0.8, 0.1, 1.0),
         (0.625, 0.1, 0.8, 0.1, 1.0), (0.626, 0.1, 0.2, 0.9, 1.0), (0.75, 0.1, 0.2, 0.9, 1.0),
