@@ -40,6 +40,21 @@ def concrete(x: Any) -> np.ndarray | None:
     return np.asarray(x)
 
 
+def refuse(x: Any, checks: list[tuple[Any, str]], where: str, *, traced: bool = True) -> Any:
+    """``x``, refused for each ``(bad, message)`` whose ``bad`` holds anywhere: with
+    ``ValueError`` at once when ``bad`` is known at trace time, with ``eqx.error_if`` at
+    run time when it is traced. ``traced=False`` (for ``__check_init__``, which cannot
+    return ``x``) leaves traced checks to a later call at the point of use."""
+    for bad, message in checks:
+        known = concrete(bad)
+        if known is None:
+            if traced:
+                x = eqx.error_if(x, bad, f"{where}: {message}")
+        elif np.any(known):
+            raise ValueError(f"{where}: {message}")
+    return x
+
+
 def check_ndim(x: Array, ndim: int, name: str, where: str, layout: str) -> None:
     if x.ndim != ndim:
         raise ValueError(

@@ -73,11 +73,7 @@ class Camera(eqx.Module):
             if jnp.shape(getattr(self, name)) != (3,):
                 raise ValueError(f"{where}: `{name}` must have shape (3,), "
                                  f"got {jnp.shape(getattr(self, name))}.")
-        leaves = (self.eye, self.target, self.up, self.fov, self.width)
-        if all(_checks.concrete(x) is not None for x in leaves):  # traced: checked in rays
-            for bad, message in self._degenerate():
-                if bool(bad):
-                    raise ValueError(f"{where}: {message}")
+        _checks.refuse(self, self._degenerate(), where, traced=False)  # traced: in rays
 
     def _degenerate(self) -> list[tuple[Array, str]]:
         """``(is_bad, message)`` for each way the camera can have no image: every
@@ -98,11 +94,8 @@ class Camera(eqx.Module):
         return checks
 
     def _valid(self) -> "Camera":
-        """This camera with run-time checks of :meth:`_degenerate` (for traced values)."""
-        camera = self
-        for bad, message in self._degenerate():
-            camera = eqx.error_if(camera, bad, f"volshade.Camera: {message}")
-        return camera
+        """This camera with the checks of :meth:`_degenerate` (run time for traced values)."""
+        return _checks.refuse(self, self._degenerate(), "volshade.Camera")
 
     @classmethod
     def orbit(

@@ -32,6 +32,12 @@ _WEIGHTS = {
 }
 
 
+def _check_size(size, where: str) -> None:
+    """The regression neighbourhood edge: the int 3 or 5."""
+    if isinstance(size, bool) or not isinstance(size, int | np.integer) or size not in (3, 5):
+        raise ValueError(f"{where}: `size` must be 3 or 5 (neighbourhood edge), got {size!r}.")
+
+
 def regression_kernel(
     size: int = 5, *, spacing=(1.0, 1.0, 1.0), weighting: str = "distance"
 ) -> np.ndarray:
@@ -44,8 +50,7 @@ def regression_kernel(
             (w = 1/|x|, Neumann et al.'s) or ``"uniform"``.
     """
     where = "volshade.gradient.regression_kernel"
-    if isinstance(size, bool) or not isinstance(size, int | np.integer) or size not in (3, 5):
-        raise ValueError(f"{where}: `size` must be 3 or 5 (neighbourhood edge), got {size!r}.")
+    _check_size(size, where)
     weight_fn = _checks.option(weighting, _WEIGHTS, "weighting", where)
     sp = np.asarray(_checks.spacing(spacing, where))
     half = size // 2

@@ -377,12 +377,8 @@ def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
     if arr.ndim != 0:
         raise ValueError(f"{where}: `d_max` must be a scalar (voxels), got shape {arr.shape}; "
                          f"for several values use `jax.vmap`.")
-    value = _checks.concrete(d_max)
-    if value is not None and not (np.isfinite(value) and value > 0):
-        raise ValueError(f"{where}: `d_max` must be a finite distance > 0 (voxels), "
-                         f"got {d_max!r}.")
-    return eqx.error_if(arr, ~(jnp.isfinite(arr) & (arr > 0)),
-                        f"{where}: `d_max` must be a finite distance > 0 (voxels).")
+    return _checks.refuse(arr, [(~(jnp.isfinite(arr) & (arr > 0)),
+                                 "`d_max` must be a finite distance > 0 (voxels).")], where)
 
 
 def _rho_fn(rho: str | Callable, where: str) -> Callable:

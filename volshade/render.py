@@ -32,7 +32,7 @@ from .gradient import regression_gradient
 from .importance import Importance, _sample_importance, normalized_gradient_magnitude
 from .sampling import trilinear
 from .shading import SHADERS, Phong
-from .transfer import TransferFunction, _in_domain
+from .transfer import TransferFunction
 
 
 def n_samples(shape: tuple[int, int, int], spacing, step: float) -> int:
@@ -97,7 +97,8 @@ def march(
             outside [0, 1] (raised when the data is seen).
     """
     where = "volshade.render"
-    volume = _checks.volume(volume, "volume", where)
+    volume = _checks.as_float_array(volume, "volume", where)
+    _checks.check_ndim(volume, 3, "volume", where, "(D, H, W)")  # finite: with the transfer
     spacing = _checks.spacing(spacing, where)
     step = _checks.positive_float(step, "step", where)
     shader = _checks.option(shading, SHADERS, "shading", where)
@@ -121,8 +122,7 @@ def march(
     if not isinstance(transfer, TransferFunction):
         raise TypeError(f"{where}: `transfer` must be a volshade.TransferFunction, got "
                         f"{type(transfer).__name__}.")
-    transfer = transfer._valid()
-    volume = _in_domain(transfer, volume, where)
+    transfer, volume = transfer._checked(volume, where)
     background = _checks.as_float_array(background, "background", where).astype(dtype)
     if background.shape != (3,):
         raise ValueError(f"{where}: `background` must be an RGB triple, shape (3,), got "

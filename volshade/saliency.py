@@ -39,7 +39,7 @@ from . import _checks
 from ._numerics import correct_opacity, safe_div
 from ._types import Array, ArrayLike, Float
 from .directions import _check_level, icosphere_points
-from .gradient import gradient_magnitude, regression_gradient
+from .gradient import _check_size, gradient_magnitude, regression_gradient
 from .obscurance import (
     RHO_FUNCTIONS,
     _direction_array,
@@ -468,9 +468,7 @@ class SaliencyModulation(eqx.Module):
         where = "volshade.SaliencyModulation"
         _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
         _check_level(self.level, where)
-        if self.size not in (3, 5):
-            raise ValueError(f"{where}: `size` must be 5 (the paper's) or 3, got "
-                             f"{self.size!r}.")
+        _check_size(self.size, where)
         _boost_top(self.boost_top, where)
 
     def __call__(self, volume: Float[Array, "D H W"], transfer) -> Float[Array, "D H W"]:

@@ -65,21 +65,37 @@ class TransferFunction(eqx.Module):
             raise ValueError(f"{_WHERE}: `opacities` must have shape {k} to match `points`, "
                              f"got {jnp.shape(self.opacities)}.")
         _checks.positive_float(self.step0, "step0", _WHERE)
-        values = [_checks.concrete(x) for x in (self.points, self.colors, self.opacities)]
-        if all(v is not None for v in values):  # traced values are checked when used
-            problem = _control_value_problem(*values)
-            if problem:
-                raise ValueError(f"{_WHERE}: {problem}")
+        _checks.refuse(self, self._problems(), _WHERE, traced=False)  # traced: when used
 
-    def _valid(self) -> "TransferFunction":
-        """This transfer function with run-time checks of its control values, which a
-        fit or ``eqx.tree_at`` may have set (``__check_init__`` sees only concrete ones)."""
-        order = jnp.any(jnp.diff(self.points) <= 0) | ~jnp.all(jnp.isfinite(self.points))
-        tf = eqx.error_if(self, order, f"{_WHERE}: {_ORDER}")
-        colors, opacities = tf.colors, tf.opacities
-        out = jnp.any(~((colors >= 0) & (colors <= 1))) | \
-            jnp.any(~((opacities >= 0) & (opacities <= 1)))
-        return eqx.error_if(tf, out, f"{_WHERE}: {_RANGE}")
+    def _problems(self) -> list[tuple[Array, str]]:
+        """``(is_bad, message)`` for the control values: points finite and strictly
+        increasing, colours and opacities in [0, 1]."""
+        def outside(x):
+            return ~((x >= 0) & (x <= 1))
+
+        return [
+            (jnp.any(jnp.diff(self.points) <= 0) | ~jnp.all(jnp.isfinite(self.points)),
+             "`points` must be finite and strictly increasing (sort the control points; "
+             "a fit should keep their order, e.g. through cumulative positive gaps)."),
+            (jnp.any(outside(self.colors)) | jnp.any(outside(self.opacities)),
+             "`colors` and `opacities` must lie in [0, 1] (a fit should keep them there, "
+             "e.g. through a sigmoid)."),
+        ]
+
+    def _checked(self, volume, where: str) -> tuple["TransferFunction", Array]:
+        """This function and ``volume``, checked for use: the control values (which a fit
+        or ``eqx.tree_at`` may have set), and ``volume`` finite and within the points."""
+        tf = _checks.refuse(self, self._problems(), _WHERE)
+        volume = _checks.finite(jnp.asarray(volume), "volume", where)
+        outside = (jnp.min(volume) < tf.points[0]) | (jnp.max(volume) > tf.points[-1])
+        # interpolation would classify all those values like the end points (a 0-255
+        # volume through a [0, 1] transfer function renders as one solid blob)
+        return tf, eqx.error_if(
+            volume, outside,
+            f"{where}: `volume` has values outside the transfer function's control points "
+            f"[points[0], points[-1]], which would all be classified like the end points; "
+            f"normalise the volume (e.g. `volshade.data.load(..., normalize=True)`) or give "
+            f"control points over its whole range.")
 
     @classmethod
     def from_points(
@@ -98,9 +114,6 @@ class TransferFunction(eqx.Module):
                              f"got shape {table.shape}.")
         if not np.all(np.isfinite(table)):
             raise ValueError(f"{where}: `points` contains NaN or inf.")
-        problem = _control_value_problem(table[:, 0], table[:, 1:4], table[:, 4])
-        if problem:
-            raise ValueError(f"{where}: {problem}")
         dtype = jnp.result_type(float) if dtype is None else dtype
         return cls(jnp.asarray(table[:, 0], dtype), jnp.asarray(table[:, 1:4], dtype),
                    jnp.asarray(table[:, 4], dtype), step0=step0)
@@ -133,60 +146,23 @@ class TransferFunction(eqx.Module):
                 infinite value to the last control point's opacity, silently), or
                 values outside ``[points[0], points[-1]]`` (the same clamp).
         """
-        tf = self._valid()
-        return tf._opacity(_in_domain(tf, _finite_values(volume, "opacity"), _WHERE + ".opacity"),
-                           step)
+        tf, volume = self._checked(volume, f"{_WHERE}.opacity")
+        return tf._opacity(volume, step)
 
     def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
         r"""Extinction $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
-        tf = self._valid()
-        where = _WHERE + ".extinction"
-        alpha0 = tf._opacity(_in_domain(tf, _finite_values(volume, "extinction"), where), None)
-        return -log1m(alpha0) / self.step0
+        tf, volume = self._checked(volume, f"{_WHERE}.extinction")
+        return -log1m(tf._opacity(volume, None)) / self.step0
 
     def color(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape 3"]:
         """RGB colour of each value, shape ``(*shape, 3)``; NaN or inf is refused."""
-        tf = self._valid()
-        return tf._color(_in_domain(tf, _finite_values(volume, "color"), _WHERE + ".color"))
+        tf, volume = self._checked(volume, f"{_WHERE}.color")
+        return tf._color(volume)
 
     def __call__(self, volume: Float[Array, "*shape"], *, step=None):
         """``(color, opacity)`` of each value; NaN or inf is refused."""
-        tf = self._valid()
-        where = _WHERE + ".__call__"
-        return tf._rgba(_in_domain(tf, _finite_values(volume, "__call__"), where), step)
-
-
-_ORDER = ("`points` must be finite and strictly increasing (sort the control points; "
-          "a fit should keep their order, e.g. through cumulative positive gaps).")
-_RANGE = ("`colors` and `opacities` must lie in [0, 1] (a fit should keep them there, e.g. "
-          "through a sigmoid).")
-
-
-def _control_value_problem(points: np.ndarray, colors: np.ndarray,
-                           opacities: np.ndarray) -> str | None:
-    """What is wrong with concrete control values, or None."""
-    if not np.all(np.isfinite(points)) or np.any(np.diff(points) <= 0):
-        return f"{_ORDER} Got {points.tolist()}."
-    if not (np.all((colors >= 0) & (colors <= 1)) and np.all((opacities >= 0)
-                                                            & (opacities <= 1))):
-        return _RANGE
-    return None
-
-
-def _finite_values(volume, method: str) -> Array:
-    return _checks.finite(jnp.asarray(volume), "volume", f"{_WHERE}.{method}")
-
-
-def _in_domain(tf: TransferFunction, volume: Array, where: str) -> Array:
-    """``volume``, refused at run time where it leaves ``[points[0], points[-1]]``:
-    interpolation would give all those values the end points' colour and opacity
-    (a 0-255 volume through a [0, 1] transfer function renders as one solid blob)."""
-    outside = (jnp.min(volume) < tf.points[0]) | (jnp.max(volume) > tf.points[-1])
-    return eqx.error_if(volume, outside,
-                        f"{where}: `volume` has values outside the transfer function's control "
-                        f"points [points[0], points[-1]], which would all be classified like the "
-                        f"end points; normalise the volume (e.g. `volshade.data.load(..., "
-                        f"normalize=True)`) or give control points over its whole range.")
+        tf, volume = self._checked(volume, f"{_WHERE}.__call__")
+        return tf._rgba(volume, step)
 
 
 class IntervalFeature(eqx.Module):
