@@ -33,6 +33,33 @@ def as_float_array(x: Any, name: str, where: str) -> Array:
     )
 
 
+def float_leaf(x: Any) -> Array:
+    """A parameter leaf as an array of a floating dtype. An int (``d_max=16``,
+    ``fov=30``) would otherwise stay an integer leaf, which ``jax.grad`` refuses and
+    ``eqx.filter_grad`` silently skips; floating dtypes are kept as given."""
+    arr = jnp.asarray(x)
+    if not jnp.issubdtype(arr.dtype, jnp.inexact):
+        arr = arr.astype(jnp.result_type(float))
+    return arr
+
+
+def flag(value: Any, name: str, where: str) -> bool:
+    """A static on/off option: ``True`` or ``False`` only (a string such as ``"no"`` is
+    truthy and would silently switch the option on)."""
+    if not isinstance(value, bool | np.bool_):
+        raise TypeError(f"{where}: `{name}` must be True or False, got {value!r}.")
+    return bool(value)
+
+
+def scalar(x: Any, name: str, where: str) -> Array:
+    """A floating scalar parameter (trace-time shape check)."""
+    arr = as_float_array(x, name, where)
+    if arr.ndim != 0:
+        raise ValueError(f"{where}: `{name}` must be a scalar, got shape {tuple(arr.shape)}; "
+                         f"for several values use `jax.vmap`.")
+    return arr
+
+
 def concrete(x: Any) -> np.ndarray | None:
     """``x`` as a NumPy array when its value is known at trace time, else None (a tracer)."""
     if isinstance(x, jax.core.Tracer):
@@ -73,7 +100,14 @@ def volume(x: Any, name: str, where: str, *, unit_range: bool = False) -> Array:
     return finite(arr, name, where, unit_range=unit_range)
 
 
-def finite(arr: Array, name: str, where: str, *, unit_range: bool = False) -> Array:
+_OPACITY_HINT = ("(opacities); map it through a transfer function or `jnp.clip` it "
+                 "yourself")
+
+
+def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
+           hint: str = _OPACITY_HINT) -> Array:
+    """``arr``, refused at run time when it holds NaN or inf, or (``unit_range``) values
+    outside [0, 1]; ``hint`` follows "must lie in [0, 1]" in that message."""
     arr = eqx.error_if(
         arr, ~jnp.all(jnp.isfinite(arr)),
         f"{where}: `{name}` contains NaN or inf; clean the data (e.g. `jnp.nan_to_num`) first.",
@@ -81,8 +115,7 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False) -> Ar
     if unit_range:
         arr = eqx.error_if(
             arr, jnp.any((arr < 0) | (arr > 1)),
-            f"{where}: `{name}` must lie in [0, 1] (opacities); map it through a transfer "
-            f"function or `jnp.clip` it yourself.",
+            f"{where}: `{name}` must lie in [0, 1] {hint}.",
         )
     return arr
 
@@ -112,6 +145,10 @@ def positive_float(value: Any, name: str, where: str) -> float:
 
 def spacing(value: Any, where: str) -> tuple[float, float, float]:
     """Voxel spacing ``(sd, sh, sw)`` in millimetres: a positive scalar or 3-sequence."""
+    if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(value)):
+        raise TypeError(f"{where}: `spacing` is static (it sets kernels and sample "
+                        f"positions) and cannot be traced; close over it instead of passing "
+                        f"it as a `jit` argument.")
     vals = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 \
         else np.asarray(value, dtype=float)
     if vals.shape != (3,):

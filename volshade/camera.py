@@ -51,11 +51,11 @@ class Camera(eqx.Module):
         projection: ``"perspective"`` or ``"orthographic"`` (static).
     """
 
-    eye: Float[Array, "3"] = eqx.field(converter=jnp.asarray)
-    target: Float[Array, "3"] = eqx.field(converter=jnp.asarray)
-    up: Float[Array, "3"] = eqx.field(converter=jnp.asarray)
-    fov: Float[Array, ""] = eqx.field(converter=jnp.asarray)
-    width: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    eye: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf)
+    target: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf)
+    up: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf)
+    fov: Float[Array, ""] = eqx.field(converter=_checks.float_leaf)
+    width: Float[Array, ""] = eqx.field(converter=_checks.float_leaf)
     image_shape: tuple[int, int] = eqx.field(static=True, default=(256, 256),
                                              converter=lambda s: _image_shape(s))
     projection: str = eqx.field(static=True, default="perspective")
@@ -166,10 +166,15 @@ class Camera(eqx.Module):
         if "azimuth" in orbit_kwargs or "elevation" in orbit_kwargs:
             raise TypeError("volshade.Camera.from_view: the view sets azimuth and elevation; "
                             "use Camera.orbit to give them.")
-        v = safe_normalize(jnp.asarray(view, jnp.result_type(float)))
-        if v.shape != (3,):
-            raise ValueError(f"volshade.Camera.from_view: `view` must be a (3,) direction, "
-                             f"got shape {v.shape}.")
+        where = "volshade.Camera.from_view"
+        view = _checks.float_leaf(view)
+        if view.shape != (3,):
+            raise ValueError(f"{where}: `view` must be a (3,) direction, got shape "
+                             f"{view.shape}.")
+        view = _checks.refuse(view, [(~jnp.all(jnp.isfinite(view)) | ~jnp.any(view != 0),
+                                      "`view` must be a finite, non-zero (3,) direction.")],
+                              where)
+        v = safe_normalize(view)
         elevation = jnp.rad2deg(jnp.arcsin(jnp.clip(v[0], -1, 1)))
         azimuth = jnp.rad2deg(jnp.arctan2(v[2], v[1]))
         return cls.orbit(azimuth=azimuth, elevation=elevation, **orbit_kwargs)

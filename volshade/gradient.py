@@ -18,6 +18,7 @@ $f(\mathbf{x} + k) - f(\mathbf{x} - k)$, so a constant neighbourhood gives an
 exactly zero gradient.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -33,9 +34,16 @@ _WEIGHTS = {
 
 
 def _check_size(size, where: str) -> None:
-    """The regression neighbourhood edge: the int 3 or 5."""
+    """The regression neighbourhood edge: the int 3 or 5 (static: it sets the kernel)."""
+    if isinstance(size, jax.core.Tracer):
+        raise TypeError(f"{where}: `size` sets the kernel and must be a static int (3 or 5), "
+                        f"not a traced value; close over it instead.")
     if isinstance(size, bool) or not isinstance(size, int | np.integer) or size not in (3, 5):
-        raise ValueError(f"{where}: `size` must be 3 or 5 (neighbourhood edge), got {size!r}.")
+        got = (f"a {size.dtype} array; pass the Python int {int(size)}"
+               if isinstance(size, np.ndarray | jax.Array) and size.ndim == 0
+               and int(size) in (3, 5) else repr(size))
+        raise ValueError(f"{where}: `size` must be the int 3 or 5 (neighbourhood edge), "
+                         f"got {got}.")
 
 
 def regression_kernel(

@@ -39,13 +39,6 @@ from ._types import Array, ArrayLike, Float
 from .gradient import gradient_magnitude
 
 
-def _scalar(x: ArrayLike) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
 _WEIGHTS = ("intensity", "extinction", "gradient", "silhouette", "unocclusion", "lighting")
 
 
@@ -78,22 +71,22 @@ class Importance(eqx.Module):
         >>> imp = Importance(intensity=4.0, silhouette=2.0)
     """
 
-    global_weight: Float[Array, ""] = eqx.field(default=1.0, converter=_scalar)
-    intensity: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
-    extinction: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
-    gradient: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
-    silhouette: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
-    unocclusion: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
-    lighting: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
-    background: Float[Array, ""] = eqx.field(default=0.0, converter=_scalar)
-    silhouette_exponent: Float[Array, ""] = eqx.field(default=1.7, converter=_scalar)
-    silhouette_start: Float[Array, ""] = eqx.field(default=0.4, converter=_scalar)
-    silhouette_end: Float[Array, ""] = eqx.field(default=1.0, converter=_scalar)
-    darkening: Float[Array, ""] = eqx.field(default=4.0, converter=_scalar)
-    unocclusion_offset: Float[Array, ""] = eqx.field(default=20.0, converter=_scalar)
-    specular_exponent: Float[Array, ""] = eqx.field(default=50.0, converter=_scalar)
-    diffuse_exponent: Float[Array, ""] = eqx.field(default=5.0, converter=_scalar)
-    gradient_exponent: Float[Array, ""] = eqx.field(default=30.0, converter=_scalar)
+    global_weight: Float[Array, ""] = eqx.field(default=1.0, converter=_checks.float_leaf)
+    intensity: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
+    extinction: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
+    gradient: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
+    silhouette: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
+    unocclusion: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
+    lighting: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
+    background: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
+    silhouette_exponent: Float[Array, ""] = eqx.field(default=1.7, converter=_checks.float_leaf)
+    silhouette_start: Float[Array, ""] = eqx.field(default=0.4, converter=_checks.float_leaf)
+    silhouette_end: Float[Array, ""] = eqx.field(default=1.0, converter=_checks.float_leaf)
+    darkening: Float[Array, ""] = eqx.field(default=4.0, converter=_checks.float_leaf)
+    unocclusion_offset: Float[Array, ""] = eqx.field(default=20.0, converter=_checks.float_leaf)
+    specular_exponent: Float[Array, ""] = eqx.field(default=50.0, converter=_checks.float_leaf)
+    diffuse_exponent: Float[Array, ""] = eqx.field(default=5.0, converter=_checks.float_leaf)
+    gradient_exponent: Float[Array, ""] = eqx.field(default=30.0, converter=_checks.float_leaf)
 
     # leaves for which -inf is a value, not an error: a background importance of -inf
     # means "no background" (volshade.composite); the renderer's finiteness check asks

@@ -744,13 +744,19 @@ class LocalAmbientOcclusion(eqx.Module):
                  directions: ArrayLike | int = 42, samples: int = 16,
                  weights: ArrayLike | None = None, opacity_correction: bool = False,
                  brick_size: int | None = None, max_radius: float | None = None):
+        where = "volshade.LocalAmbientOcclusion"
         self.radius = jnp.asarray(radius, dtype=float)
         self.offset = jnp.asarray(offset, dtype=float)
+        # checked here when known, since the default max_radius is derived from it
+        # (lao checks traced values again at run time)
+        _checks.refuse(self.radius, [(~(jnp.isfinite(self.radius) & (self.radius > 0)),
+                                      f"`radius` must be a finite number > 0 (voxels), got "
+                                      f"{radius!r}.")], where, traced=False)
         if isinstance(directions, int | np.integer) and not isinstance(directions, bool):
             directions = _directions.fibonacci(int(directions))
         self.directions = jnp.asarray(directions)
         self.weights = None if weights is None else jnp.asarray(weights)
-        self.samples = _checks.positive_int(samples, "samples", "volshade.LocalAmbientOcclusion")
+        self.samples = _checks.positive_int(samples, "samples", where)
         self.opacity_correction = bool(opacity_correction)
         self.brick_size = brick_size
         if max_radius is None and not isinstance(radius, jax.core.Tracer):

@@ -148,6 +148,12 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     except (TypeError, ValueError) as err:
         raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, "
                         f"got {type(directions).__name__}.") from err
+    if dirs.ndim == 0:
+        raise TypeError(
+            f"{where}: `{name}` must be an (L, 3) array of directions, got the number "
+            f"{directions!r}: the sweep needs the directions themselves; use e.g. "
+            f"`volshade.directions.icosphere_points(1)` (42 directions; levels 0, 1, 2 give "
+            f"the paper's 12, 42, 162).")
     if dirs.ndim != 2 or dirs.shape[1] != 3 or dirs.shape[0] == 0:
         raise ValueError(
             f"{where}: `{name}` must have shape (L, 3) with L >= 1 (d, h, w) directions, got "
@@ -364,7 +370,7 @@ def _occluder_index(steps: Array, off_b: Array, off_c: Array) -> tuple[Array, Ar
 def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
     """``d_max`` as a scalar array: refused at trace time when concrete, at run time
     (``eqx.error_if``) when traced."""
-    if isinstance(d_max, bool | str | bytes) or (
+    if d_max is None or isinstance(d_max, bool | str | bytes) or (
             isinstance(d_max, np.ndarray | jax.Array)
             and not (jnp.issubdtype(d_max.dtype, jnp.floating)
                      or jnp.issubdtype(d_max.dtype, jnp.integer))):
@@ -456,7 +462,7 @@ def obscurance(
     d_max: Float[ArrayLike, ""],
     rho: str | Callable[[Array, Array], Array] = "sqrt",
     colors: Float[Array, "D H W 3"] | None = None,
-    ambient: Float[ArrayLike, "3"] = (1.0, 1.0, 1.0),
+    ambient: Float[ArrayLike, "3"] | None = None,
 ) -> Float[Array, "D H W"] | Float[Array, "D H W 3"]:
     r"""Obscurance (eq. 1) or colour-bleeding obscurance (eq. 3) of every voxel.
 
@@ -486,10 +492,10 @@ def obscurance(
         rho: ``"ao"``, ``"linear"``, ``"exponential"``, ``"sqrt"`` (section 3.2, see
             :data:`RHO_FUNCTIONS`) or a callable ``rho(d, d_max)`` evaluated
             elementwise on occluded directions ($0 < d \le d_{max}$).
-        colors: optional ``(D, H, W, 3)`` diffuse colours $R$ (e.g. the transfer
-            function's colour of each voxel); turns on colour bleeding.
-        ambient: ``(3,)`` colour of unoccluded directions for colour bleeding
-            (white by default; the average reflectivity in Méndez et al.).
+        colors: optional ``(D, H, W, 3)`` diffuse colours $R$ in $[0, 1]$ (e.g. the
+            transfer function's colour of each voxel); turns on colour bleeding.
+        ambient: ``(3,)`` colour in $[0, 1]$ of unoccluded directions, for colour
+            bleeding only (``None``: white; the average reflectivity in Méndez et al.).
 
     Returns:
         ``(D, H, W)`` obscurance in $[0, 1]$ (for rho in $[0, 1]$), or
@@ -497,10 +503,19 @@ def obscurance(
 
     Raises:
         ValueError: ``density`` not 3-D or empty, ``colors`` not ``(D, H, W, 3)``,
-            ``directions`` not ``(L, 3)`` with ``L >= 1`` or containing zero vectors,
-            ``d_max <= 0``, unknown ``rho``; NaN/inf in ``density``, ``colors`` or
-            ``d_max`` (at run time, through ``eqx.error_if``).
-        TypeError: non-numeric inputs, or traced ``directions``.
+            ``ambient`` without ``colors``, ``directions`` not ``(L, 3)`` with
+            ``L >= 1`` or containing zero vectors, unknown ``rho`` or a ``rho`` whose
+            result does not have the distances' shape, a concrete ``d_max <= 0``.
+        equinox.EquinoxRuntimeError: at run time (``jax.jit`` reports it as a
+            ``JaxRuntimeError`` carrying the same message): NaN/inf in ``density``,
+            ``colors`` outside $[0, 1]$ or NaN, a traced ``d_max`` that is not a
+            finite number > 0.
+        TypeError: non-numeric inputs, an int or traced ``directions``.
+
+    Noisy densities (MRI, CT) speckle the obscurance: the strict "greater than"
+    test flips between neighbouring voxels of nearly equal density. Smooth the
+    density first (e.g. ``skimage.filters.gaussian``), as
+    ``experiments/corner_colour_bleeding.py`` does.
 
     References:
         Ruiz, Boada, Viola, Bruckner, Feixas, Sbert: Obscurance-based volume
@@ -526,12 +541,18 @@ def obscurance(
         if colors.shape != (*density.shape, 3):
             raise ValueError(f"{where}: `colors` must have shape {(*density.shape, 3)} "
                              f"(D, H, W, RGB) to match `density`, got {colors.shape}.")
-        colors = _checks.finite(colors, "colors", where)
+        colors = _checks.finite(colors, "colors", where, unit_range=True,
+                                   hint="(RGB reflectances); rescale it")
+        ambient = (1.0, 1.0, 1.0) if ambient is None else ambient
         ambient = _checks.as_float_array(ambient, "ambient", where).astype(dtype)
         if ambient.shape != (3,):
             raise ValueError(f"{where}: `ambient` must be an RGB triple, shape (3,), got "
                              f"{ambient.shape}.")
-        ambient = _checks.finite(ambient, "ambient", where)
+        ambient = _checks.finite(ambient, "ambient", where, unit_range=True,
+                                   hint="(RGB reflectances); rescale it")
+    elif ambient is not None:
+        raise ValueError(f"{where}: `ambient` is the colour of unoccluded directions for "
+                         f"colour bleeding and needs `colors`; pass `colors` or drop it.")
     return _obscurance(density, d_max, colors, ambient if bleeding else None,
                        dirs=_static_dirs(dirs), rho_fn=rho_fn, columns_last=_columns_last())
 
@@ -557,6 +578,11 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
             occluded = (steps > 0) & (dist <= d_max)
             safe_dist = jnp.where(occluded, dist, d_max)
             value = jnp.asarray(rho_fn(safe_dist, d_max), dtype)
+            if value.shape != safe_dist.shape:
+                raise ValueError(
+                    f"volshade.obscurance.obscurance: `rho(d, d_max)` must return one value "
+                    f"per distance (elementwise, shape {safe_dist.shape}), got shape "
+                    f"{value.shape}.")
             if not bleeding:
                 return acc + jnp.where(occluded, value, jnp.ones_like(value)), None
             qi, qj, qk = _occluder_index(steps, off_b, off_c)
@@ -599,8 +625,9 @@ def threshold(
         Array of the input's shape and dtype, in [0, 1].
 
     Raises:
-        ValueError: ``low > high`` (at trace time for Python numbers, else at run
-            time), or non-scalar thresholds.
+        ValueError: ``low > high`` for Python numbers, or non-scalar thresholds.
+        equinox.EquinoxRuntimeError: at run time, for array thresholds: ``low > high``,
+            NaN/inf thresholds or obscurance.
 
     References:
         Ruiz et al. 2008, section 5.1.
@@ -662,8 +689,11 @@ def obscurance_shading(
         ``(...)`` or ``(..., 3)`` intensity, in the dtype of ``normal``.
 
     Raises:
-        ValueError: vectors whose last axis is not 3; NaN or inf in ``normal``,
-            ``light``, ``view`` or ``obscurance`` (at run time).
+        ValueError: vectors whose last axis is not 3 or that do not broadcast against
+            ``normal``; non-scalar coefficients; a concrete ``shininess <= 0``.
+        equinox.EquinoxRuntimeError: at run time: NaN or inf in ``normal``,
+            ``light``, ``view``, ``obscurance`` or the coefficients; a traced
+            ``shininess <= 0``.
 
     References:
         Ruiz et al. 2008, eq. (5).
@@ -681,9 +711,9 @@ def obscurance_shading(
     vectors = {}
     for name, vec in (("light", light), ("view", view)):
         vec = _checks.as_float_array(vec, name, where).astype(dtype)
-        if vec.ndim < 1 or vec.shape[-1] != 3:
-            raise ValueError(f"{where}: `{name}` must have shape (3,) or (..., 3), "
-                             f"got {vec.shape}.")
+        if vec.ndim < 1 or vec.shape[-1] != 3 or not _broadcasts(vec.shape, normal.shape):
+            raise ValueError(f"{where}: `{name}` must have shape (3,) or one that "
+                             f"broadcasts to `normal`'s {normal.shape}, got {vec.shape}.")
         vectors[name] = _checks.finite(vec, name, where)
     light, view = vectors["light"], vectors["view"]
     obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
@@ -692,7 +722,20 @@ def obscurance_shading(
     if obscurance.shape not in (batch, (*batch, 3)):
         raise ValueError(f"{where}: `obscurance` must have shape {batch} (grey) or "
                          f"{(*batch, 3)} (RGB) to match `normal`, got {obscurance.shape}.")
+    k_d, k_s, shininess = (_checks.finite(_checks.scalar(v, name, where).astype(dtype), name,
+                                          where)
+                           for v, name in ((k_d, "k_d"), (k_s, "k_s"),
+                                           (shininess, "shininess")))
+    shininess = _checks.refuse(shininess, [(~(shininess > 0), "`shininess` must be > 0.")],
+                               where)
     return _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess)
+
+
+def _broadcasts(shape: tuple, target: tuple) -> bool:
+    try:
+        return np.broadcast_shapes(shape, target) == target
+    except ValueError:
+        return False
 
 
 def _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess):
@@ -732,9 +775,9 @@ class ObscuranceParams(eqx.Module):
             ``"intensity"`` (raw values, transfer-function independent).
     """
 
-    d_max: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=32.0)
-    low: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
-    high: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
+    d_max: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=32.0)
+    low: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.0)
+    high: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=1.0)
     rho: str = eqx.field(static=True, default="sqrt")
     level: int = eqx.field(static=True, default=1)
     color_bleeding: bool = eqx.field(static=True, default=False)
@@ -747,6 +790,16 @@ class ObscuranceParams(eqx.Module):
             raise ValueError(f"{where}: unknown density {self.density!r}; valid values are "
                              f"{', '.join(map(repr, _DENSITIES))}.")
         _check_level(self.level, where)
+        _checks.flag(self.color_bleeding, "color_bleeding", where)
+        d_max, low, high = (_checks.scalar(getattr(self, name), name, where)
+                            for name in ("d_max", "low", "high"))
+        # values are checked here when known; traced ones again where they are used
+        _checks.refuse(d_max, [(~(jnp.isfinite(d_max) & (d_max > 0)),
+                                "`d_max` must be a finite distance > 0 (voxels).")],
+                       where, traced=False)
+        _checks.refuse(low, [(~(jnp.isfinite(low) & jnp.isfinite(high)),
+                              "`low` and `high` must be finite."),
+                             (low > high, "`low` must be <= `high`.")], where, traced=False)
 
     def __call__(self, volume: Float[Array, "D H W"], transfer) -> Array:
         """Thresholded obscurance of ``volume`` classified by ``transfer``: ``(D, H, W)``,

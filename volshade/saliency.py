@@ -39,7 +39,7 @@ from . import _checks
 from ._numerics import correct_opacity, safe_div
 from ._types import Array, ArrayLike, Float
 from .directions import _check_level, icosphere_points
-from .gradient import _check_size, gradient_magnitude, regression_gradient
+from .gradient import _WEIGHTS, _check_size, gradient_magnitude, regression_gradient
 from .obscurance import (
     RHO_FUNCTIONS,
     _direction_array,
@@ -90,8 +90,9 @@ def saliency(
         ``(D, H, W)`` saliency in $[0, 1]$, in the input dtype.
 
     Raises:
-        ValueError: wrong rank, empty, bad ``size``/``weighting``/``spacing``; NaN or
-            inf (at run time).
+        ValueError: wrong rank, empty, bad ``size``/``weighting``/``spacing``.
+        TypeError: a traced ``spacing`` (static: it sets the kernel).
+        equinox.EquinoxRuntimeError: NaN or inf in ``obscurance`` (at run time).
 
     References:
         Ruiz et al. 2008, eq. (4); Neumann, Csébfalvi, König, Gröller: Gradient
@@ -103,6 +104,9 @@ def saliency(
         1.0
     """
     where = "volshade.saliency.saliency"
+    _check_size(size, where)
+    _checks.spacing(spacing, where)
+    _checks.option(weighting, _WEIGHTS, "weighting", where)
     arr = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
                          "obscurance", where)
     if arr.ndim == 4:
@@ -112,6 +116,7 @@ def saliency(
         _checks.check_ndim(arr[..., 0], 3, "obscurance", where, "(D, H, W) or (D, H, W, C)")
         channels = [arr[..., c] for c in range(arr.shape[-1])]
     elif arr.ndim == 3:
+        _checks.check_ndim(arr, 3, "obscurance", where, "(D, H, W) or (D, H, W, C)")
         channels = [arr]
     else:
         raise ValueError(f"{where}: `obscurance` must have shape (D, H, W) or (D, H, W, C), "
@@ -241,8 +246,9 @@ def viewpoint_saliency(
         ``(V,)`` viewpoint saliencies in the dtype of ``saliency``.
 
     Raises:
-        ValueError: shapes differ, bad ``viewpoints``, unknown ``visibility``;
-            opacity outside [0, 1] or NaN (at run time).
+        ValueError: shapes differ, bad ``viewpoints``, unknown ``visibility``.
+        equinox.EquinoxRuntimeError: opacity outside [0, 1], NaN or inf in either
+            volume (at run time).
 
     References:
         Ruiz et al. 2008, eq. (6); Lee, Varshney, Jacobs: Mesh saliency. SIGGRAPH 2005.
@@ -295,7 +301,7 @@ def projected_area(
     """
     where = "volshade.saliency.projected_area"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
-    level = _checks.as_float_array(level, "level", where).astype(opacity.dtype)
+    level = _checks.scalar(level, "level", where).astype(opacity.dtype)
     level = eqx.error_if(level, ~jnp.isfinite(level),
                          f"{where}: `level` must be a finite opacity (0 counts every voxel "
                          f"with any opacity).")
@@ -307,6 +313,9 @@ def projected_area(
 
 
 def _select(saliency, opacity, viewpoints, per_area, visibility, pick, where):
+    _check_pair(saliency, opacity, where)  # so that errors name the function called
+    _checks.option(visibility, _VISIBILITY, "visibility", where)
+    _direction_array(viewpoints, "viewpoints", where)
     values = viewpoint_saliency(saliency, opacity, viewpoints, visibility=visibility,
                                 per_area=per_area)
     dirs = jnp.asarray(_direction_array(viewpoints, "viewpoints", where), values.dtype)
@@ -383,8 +392,9 @@ def modulate_opacity(
         ``(D, H, W)`` opacities in [0, 1], in the dtype of ``opacity``.
 
     Raises:
-        ValueError: shapes differ, ``boost_top`` outside (0, 1]; ``opacity`` outside
-            [0, 1] or NaN/inf in either volume (at run time).
+        ValueError: shapes differ, ``boost_top`` outside (0, 1], non-scalar ``threshold``.
+        equinox.EquinoxRuntimeError: ``opacity`` outside [0, 1], NaN/inf in either
+            volume or in ``threshold`` (at run time).
 
     Example:
         >>> a = jnp.full((1, 1, 3), 0.5)
@@ -417,7 +427,7 @@ def opacity_factor(
     """
     dtype = saliency.dtype
     boost_top = _boost_top(boost_top, "volshade.opacity_factor")
-    threshold = _checks.as_float_array(threshold, "threshold", "volshade.opacity_factor")
+    threshold = _checks.scalar(threshold, "threshold", "volshade.opacity_factor")
     threshold = eqx.error_if(threshold.astype(dtype), ~jnp.isfinite(threshold),
                              "volshade.opacity_factor: `threshold` must be a finite saliency "
                              "level (0.2 in the paper).")
@@ -456,8 +466,8 @@ class SaliencyModulation(eqx.Module):
     differentiable leaves; the rest is static.
     """
 
-    threshold: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.2)
-    d_max: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=32.0)
+    threshold: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.2)
+    d_max: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=32.0)
     rho: str = eqx.field(static=True, default="sqrt")
     level: int = eqx.field(static=True, default=1)
     size: int = eqx.field(static=True, default=5)
@@ -470,10 +480,23 @@ class SaliencyModulation(eqx.Module):
         _check_level(self.level, where)
         _check_size(self.size, where)
         _boost_top(self.boost_top, where)
+        _checks.flag(self.multiply, "multiply", where)
+        threshold = _checks.scalar(self.threshold, "threshold", where)
+        d_max = _checks.scalar(self.d_max, "d_max", where)
+        # values are checked here when known; traced ones again where they are used
+        _checks.refuse(threshold, [(~jnp.isfinite(threshold),
+                                    "`threshold` must be a finite saliency level.")],
+                       where, traced=False)
+        _checks.refuse(d_max, [(~(jnp.isfinite(d_max) & (d_max > 0)),
+                                "`d_max` must be a finite distance > 0 (voxels).")],
+                       where, traced=False)
 
-    def __call__(self, volume: Float[Array, "D H W"], transfer) -> Float[Array, "D H W"]:
-        """The opacity factor volume for ``volume`` classified by ``transfer``."""
+    def __call__(self, volume: Float[Array, "D H W"], transfer,
+                 spacing: float | tuple[float, float, float] = 1.0) -> Float[Array, "D H W"]:
+        """The opacity factor volume for ``volume`` classified by ``transfer``, with
+        voxels of ``spacing`` mm (the scene's) for the saliency's regression gradient."""
         obs = obscurance(transfer.opacity(volume), directions=icosphere_points(self.level),
                          d_max=self.d_max, rho=self.rho)
-        return opacity_factor(saliency(obs, size=self.size), threshold=self.threshold,
-                              multiply=self.multiply, boost_top=self.boost_top)
+        return opacity_factor(saliency(obs, size=self.size, spacing=spacing),
+                              threshold=self.threshold, multiply=self.multiply,
+                              boost_top=self.boost_top)

@@ -37,7 +37,10 @@ def _nothing(scene: "Scene") -> None:
 
 
 def _volume_ambient(scene: "Scene") -> Array:
-    return scene.ambient_volume
+    return eqx.error_if(scene.ambient_volume,
+                        ~jnp.all((scene.ambient_volume >= 0) & (scene.ambient_volume <= 1)),
+                        "volshade.render: `scene.ambient_volume` must lie in [0, 1] (an "
+                        "ambient factor); rescale it, e.g. divide by its maximum.")
 
 
 def _lao_ambient(scene: "Scene") -> Array:
@@ -52,7 +55,18 @@ def _obscurance_ambient(scene: "Scene") -> Array:
 
 
 def _saliency_factor(scene: "Scene") -> Array:
-    return scene.saliency(scene.volume, scene.transfer)
+    return scene.saliency(scene.volume, scene.transfer, scene.spacing)
+
+
+def _as_array(volume):
+    """Nested lists become an array (kept as a list, every voxel would be a static
+    Python float under ``eqx.filter_jit``); arrays are kept with their dtype."""
+    if eqx.is_array(volume):
+        return volume
+    try:
+        return jnp.asarray(volume)
+    except TypeError:
+        return volume  # refused by __check_init__, with the argument's name
 
 
 # Effect tables: stage -> effect name -> what to compute for it. An effect that is off
@@ -109,7 +123,7 @@ class Scene(eqx.Module):
         (4, 4, 4)
     """
 
-    volume: Float[Array, "D H W"]
+    volume: Float[Array, "D H W"] = eqx.field(converter=_as_array)
     transfer: TransferFunction
     spacing: tuple[float, float, float] = eqx.field(static=True, default=(1.0, 1.0, 1.0),
                                                     converter=lambda s: _checks.spacing(s, _WHERE))
@@ -125,7 +139,8 @@ class Scene(eqx.Module):
     composition: str = eqx.field(static=True, default="standard")
     importance: Importance = eqx.field(default_factory=Importance)
     focus: Focus | None = None
-    background: Float[Array, "3"] = eqx.field(converter=jnp.asarray, default=(0.0, 0.0, 0.0))
+    background: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf,
+                                              default=(0.0, 0.0, 0.0))
 
     def __check_init__(self):
         _checks.as_float_array(self.volume, "volume", _WHERE)

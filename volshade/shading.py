@@ -23,6 +23,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax.numpy as jnp
 
+from . import _checks
 from ._numerics import safe_normalize, safe_pow
 from ._types import Array, Float
 from .obscurance import _obscurance_shading
@@ -38,10 +39,21 @@ class Phong(eqx.Module):
         shininess: Phong exponent $n$.
     """
 
-    ambient: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.35)
-    diffuse: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.65)
-    specular: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.25)
-    shininess: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=24.0)
+    ambient: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.35)
+    diffuse: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.65)
+    specular: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.25)
+    shininess: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=24.0)
+
+    def __check_init__(self):
+        where = "volshade.Phong"
+        for name in ("ambient", "diffuse", "specular", "shininess"):
+            value = _checks.scalar(getattr(self, name), name, where)
+            # values are checked here when known (traced ones: finiteness at render)
+            _checks.refuse(value, [(~(jnp.isfinite(value) & (value >= 0)),
+                                    f"`{name}` must be a finite number >= 0.")],
+                           where, traced=False)
+        _checks.refuse(self.shininess, [(~(self.shininess > 0), "`shininess` must be > 0.")],
+                       where, traced=False)
 
 
 def blinn_phong(

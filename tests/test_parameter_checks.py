@@ -1,0 +1,158 @@
+"""Parameter modules and entry points: float leaves that get gradients, and bad input
+refused with a message that names the argument (found by a new-user walkthrough)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import volshade as vs
+from volshade import scene as scene_module
+from volshade.directions import icosphere, icosphere_points
+from volshade.saliency import opacity_factor
+
+VOL = vs.data.phantom("shells", shape=12)
+TF = vs.transfer.preset("shells")
+CAM = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(6, 6))
+RNG = np.random.default_rng(0)
+DENSITY = jnp.asarray(RNG.random((8, 8, 8)), jnp.float32)
+
+
+def _obscurance_scene(params):
+    return vs.Scene(volume=VOL, transfer=TF, shading="phong", ambient="obscurance",
+                    obscurance=params)
+
+
+def test_int_parameters_become_float_leaves_that_get_gradients():
+    # an int leaf would silently get no gradient from eqx.filter_grad
+    modules = [vs.ObscuranceParams(d_max=4, low=0, high=1), vs.SaliencyModulation(d_max=4),
+               vs.Phong(ambient=1, diffuse=1, specular=0, shininess=8),
+               vs.Camera(eye=[0, 3, 0], target=[0, 0, 0], up=[1, 0, 0], fov=30, width=1),
+               vs.Scene(volume=VOL, transfer=TF, background=(0, 0, 0))]
+    for module in modules:
+        for leaf in jax.tree_util.tree_leaves(eqx.filter(module, eqx.is_array)):
+            assert jnp.issubdtype(leaf.dtype, jnp.floating), (type(module).__name__, leaf)
+
+    def loss(scene):
+        return jnp.sum(vs.render(scene, CAM)[..., :3])
+
+    g_int = eqx.filter_grad(loss)(_obscurance_scene(vs.ObscuranceParams(d_max=4, level=0)))
+    g_float = eqx.filter_grad(loss)(_obscurance_scene(vs.ObscuranceParams(d_max=4.0, level=0)))
+    assert g_int.obscurance.d_max is not None
+    assert float(g_int.obscurance.d_max) == float(g_float.obscurance.d_max) != 0.0
+
+
+@pytest.mark.parametrize("build, exc, match", [
+    (lambda: vs.ObscuranceParams(d_max=-1.0), ValueError, "d_max"),
+    (lambda: vs.ObscuranceParams(d_max=[4.0, 8.0]), ValueError, "d_max` must be a scalar"),
+    (lambda: vs.ObscuranceParams(low=0.9, high=0.1), ValueError, "`low` must be <= `high`"),
+    (lambda: vs.ObscuranceParams(high=float("nan")), ValueError, "finite"),
+    (lambda: vs.ObscuranceParams(color_bleeding="no"), TypeError, "color_bleeding"),
+    (lambda: vs.SaliencyModulation(d_max=0.0), ValueError, "d_max"),
+    (lambda: vs.SaliencyModulation(threshold=float("nan")), ValueError, "threshold"),
+    (lambda: vs.SaliencyModulation(multiply="no"), TypeError, "multiply"),
+    (lambda: vs.Phong(diffuse=[1.0, 2.0]), ValueError, "diffuse` must be a scalar"),
+    (lambda: vs.Phong(shininess=0.0), ValueError, "shininess` must be > 0"),
+    (lambda: vs.Phong(specular=-1.0), ValueError, "specular"),
+    (lambda: vs.LocalAmbientOcclusion(-1.0), ValueError, "radius` must be .* got -1.0"),
+])
+def test_parameter_modules_refuse_bad_values_at_construction(build, exc, match):
+    with pytest.raises(exc, match=match):
+        build()
+
+
+def test_parameter_modules_accept_traced_values():
+    # constructed under jit the values are unknown: nothing is refused at construction
+    out = jax.jit(lambda d, t: (vs.ObscuranceParams(d_max=d).d_max,
+                                vs.SaliencyModulation(threshold=t).threshold))(4.0, 0.2)
+    assert [float(x) for x in out] == [4.0, pytest.approx(0.2)]
+
+
+def test_from_view_refuses_zero_and_nan_directions():
+    for view in (jnp.zeros(3), jnp.array([jnp.nan, 1.0, 0.0]), [0.0, jnp.inf, 0.0]):
+        with pytest.raises(ValueError, match="from_view: `view` must be a finite, non-zero"):
+            vs.Camera.from_view(view)
+    with pytest.raises(ValueError, match="shape"):
+        vs.Camera.from_view([1.0, 0.0])
+    build = jax.jit(lambda v: vs.Camera.from_view(v, image_shape=4).eye)
+    assert np.allclose(build(jnp.array([0.0, 1.0, 0.0])), [0.0, 2.5, 0.0], atol=1e-6)
+    with pytest.raises(Exception, match="`view` must be a finite, non-zero"):
+        jax.block_until_ready(build(jnp.zeros(3)))
+
+
+def test_obscurance_input_errors_name_the_argument():
+    dirs = icosphere(0)
+    with pytest.raises(TypeError, match="`d_max` must be a number"):
+        vs.obscurance(DENSITY, directions=dirs, d_max=None)
+    with pytest.raises(ValueError, match="`rho\\(d, d_max\\)` must return one value per"):
+        vs.obscurance(DENSITY, directions=dirs, d_max=4.0, rho=lambda d, m: jnp.ones(3))
+    with pytest.raises(ValueError, match="`ambient` .* needs `colors`"):
+        vs.obscurance(DENSITY, directions=dirs, d_max=4.0, ambient=(1.0, 1.0, 1.0))
+    with pytest.raises(TypeError, match="got the number 42.*icosphere_points"):
+        vs.obscurance(DENSITY, directions=42, d_max=4.0)
+    colors = jnp.stack([DENSITY] * 3, -1)
+    for bad in ({"colors": 255 * colors}, {"colors": -colors},
+                {"colors": colors, "ambient": (2.0, 1.0, 1.0)}):
+        with pytest.raises(Exception, match="must lie in \\[0, 1\\] \\(RGB reflectances\\)"):
+            jax.block_until_ready(vs.obscurance(DENSITY, directions=dirs, d_max=4.0, **bad))
+
+
+def test_obscurance_shading_input_errors():
+    normal, obs = jnp.ones((5, 3)), jnp.ones(5)
+    with pytest.raises(ValueError, match="`light` must have shape \\(3,\\) or one that"):
+        vs.obscurance_shading(normal, jnp.ones((4, 3)), jnp.ones(3), obs)
+    with pytest.raises(ValueError, match="`k_d` must be a scalar"):
+        vs.obscurance_shading(normal, jnp.ones(3), jnp.ones(3), obs, k_d=jnp.ones(2))
+    for n in (0.0, -1.0):
+        with pytest.raises(ValueError, match="`shininess` must be > 0"):
+            vs.obscurance_shading(normal, jnp.ones(3), jnp.ones(3), obs, shininess=n)
+    # per-sample light directions that broadcast are fine
+    out = vs.obscurance_shading(normal, jnp.ones((5, 3)), jnp.ones((1, 3)), obs)
+    assert out.shape == (5,)
+
+
+def test_saliency_errors_name_saliency_and_the_argument():
+    with pytest.raises(TypeError, match="saliency.saliency: `spacing` is static"):
+        jax.jit(lambda s: vs.saliency(DENSITY, spacing=s))(jnp.ones(3))
+    with pytest.raises(ValueError, match="saliency.saliency: `size` .* pass the Python int 5"):
+        vs.saliency(DENSITY, size=jnp.int32(5))
+    with pytest.raises(ValueError, match="saliency.saliency: `spacing`"):
+        vs.saliency(DENSITY, spacing=(1.0, 2.0))
+    with pytest.raises(ValueError, match="saliency.saliency: `obscurance` must not be empty"):
+        vs.saliency(jnp.zeros((0, 4, 4)))
+    with pytest.raises(ValueError, match="most_salient_view: `saliency` and `opacity`"):
+        vs.most_salient_view(DENSITY, DENSITY[:, :, :4], icosphere(0))
+    with pytest.raises(ValueError, match="modulate_opacity|opacity_factor"):
+        vs.modulate_opacity(DENSITY, DENSITY, threshold=jnp.array([0.1, 0.2]))
+    with pytest.raises(ValueError, match="projected_area: `level` must be a scalar"):
+        vs.projected_area(DENSITY, icosphere(0), level=jnp.array([0.1, 0.2]))
+
+
+def test_scene_saliency_modulation_uses_the_scene_spacing():
+    vol = vs.data.phantom("orange", shape=(10, 16, 16))
+    tf = vs.transfer.preset("grey")
+    spacing = (2.0, 1.0, 1.0)
+    modulation = vs.SaliencyModulation(d_max=6.0, level=0, threshold=0.0)
+    scene = vs.Scene(volume=vol, transfer=tf, spacing=spacing, modulation="saliency",
+                     saliency=modulation)
+    obs = vs.obscurance(tf.opacity(vol), directions=icosphere_points(0), d_max=6.0)
+    want = opacity_factor(vs.saliency(obs, spacing=spacing), threshold=0.0)
+    unit = opacity_factor(vs.saliency(obs), threshold=0.0)
+    assert float(jnp.max(jnp.abs(want - unit))) > 1e-2  # the spacing matters here
+    np.testing.assert_allclose(scene_module._saliency_factor(scene), want, atol=1e-6)
+
+
+def test_scene_refuses_an_ambient_volume_outside_the_unit_range():
+    scene = vs.Scene(volume=VOL, transfer=TF, shading="phong", ambient="volume",
+                     ambient_volume=jnp.full(VOL.shape, 5.0))
+    with pytest.raises(Exception, match="`scene.ambient_volume` must lie in \\[0, 1\\]"):
+        jax.block_until_ready(vs.render(scene, CAM))
+
+
+def test_scene_turns_a_nested_list_volume_into_an_array():
+    scene = vs.Scene(volume=np.asarray(VOL).tolist(), transfer=TF)
+    assert isinstance(scene.volume, jax.Array)
+    # (a list of Python floats becomes float64 under x64)
+    np.testing.assert_allclose(vs.render(scene, CAM),
+                               vs.render(vs.Scene(volume=VOL, transfer=TF), CAM), atol=1e-5)
