@@ -1,0 +1,46 @@
+"""float32 against float64 for whole renders: every effect a scene can call for,
+computed in both precisions from the same parameters (the suite runs with x64)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import volshade as vs
+
+VOL = vs.data.phantom("shells", shape=16)
+TF = vs.transfer.preset("shells")
+CAM = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))
+
+SCENES = {
+    "emission-absorption": dict(),
+    "phong + lao": dict(shading="phong", ambient="lao",
+                        lao=vs.LocalAmbientOcclusion(4.0, directions=12, samples=6)),
+    "obscurance shading + colour bleeding": dict(
+        shading="obscurance", ambient="obscurance",
+        obscurance=vs.ObscuranceParams(d_max=6.0, level=0, color_bleeding=True)),
+    "saliency modulation": dict(modulation="saliency",
+                                saliency=vs.SaliencyModulation(d_max=6.0, level=0,
+                                                               threshold=0.1)),
+    "importance + focus": dict(shading="phong", composition="importance",
+                               importance=vs.Importance(intensity=2.0, gradient=1.0,
+                                                        silhouette=1.0, unocclusion=1.0),
+                               focus=vs.Focus(radius=0.3)),
+}
+
+
+def _cast(tree, dtype):
+    return jax.tree_util.tree_map(
+        lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, tree)
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_render_float32_agrees_with_float64(name):
+    scene = vs.Scene(volume=VOL, transfer=TF, **SCENES[name])
+    render = eqx.filter_jit(vs.render)
+    hi = render(_cast(scene, jnp.float64), _cast(CAM, jnp.float64))
+    lo = render(_cast(scene, jnp.float32), _cast(CAM, jnp.float32))
+    assert hi.dtype == jnp.float64 and lo.dtype == jnp.float32
+    assert float(jnp.max(hi[..., 3])) > 0.1  # something is drawn
+    np.testing.assert_allclose(lo, hi, atol=2e-5)
