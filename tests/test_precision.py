@@ -44,3 +44,15 @@ def test_render_float32_agrees_with_float64(name):
     assert hi.dtype == jnp.float64 and lo.dtype == jnp.float32
     assert float(jnp.max(hi[..., 3])) > 0.1  # something is drawn
     np.testing.assert_allclose(lo, hi, atol=2e-5)
+
+
+@pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])
+def test_half_precision_volumes_render_in_float32(dtype):
+    # a half-precision volume is upcast (exactly) and rendered as a float32 one
+    parts = _cast(dict(transfer=TF, phong=vs.Phong(), background=jnp.zeros(3)), jnp.float32)
+    camera = _cast(CAM, jnp.float32)
+    image = vs.render(vs.Scene(volume=VOL.astype(dtype), shading="phong", **parts), camera)
+    want = vs.render(vs.Scene(volume=VOL.astype(dtype).astype(jnp.float32), shading="phong",
+                              **parts), camera)
+    assert image.dtype == jnp.float32
+    np.testing.assert_array_equal(image, want)

@@ -88,7 +88,10 @@ def march(
 
     Returns:
         ``(H, W, 4)``: RGB with the background blended in, and the accumulated
-        opacity; the dtype of ``volume``.
+        opacity; the dtype of ``volume``, or float32 for a half-precision
+        (``float16``/``bfloat16``) volume, which is rendered in float32 (its values
+        convert exactly; compositing hundreds of samples in half precision would not
+        be accurate to a grey level).
 
     Raises:
         ValueError / TypeError: bad shapes, dtypes, options or sizes; NaN or inf
@@ -98,6 +101,8 @@ def march(
     """
     where = "volshade.render"
     volume = _checks.as_float_array(volume, "volume", where)
+    if jnp.finfo(volume.dtype).bits < 32:
+        volume = volume.astype(jnp.float32)
     _checks.check_ndim(volume, 3, "volume", where, "(D, H, W)")  # finite: with the transfer
     spacing = _checks.spacing(spacing, where)
     step = _checks.positive_float(step, "step", where)
