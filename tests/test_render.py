@@ -7,11 +7,27 @@ from helpers import check_grad_fd
 
 from volshade.camera import Camera, box_half_extent, intersect_box
 from volshade.render import march, n_samples, save_png
+from volshade.shading import Phong, blinn_phong
 from volshade.transfer import TransferFunction, preset
 
 
 def _constant_tf(alpha0, color=(0.2, 0.6, 1.0), dtype=jnp.float64):
     return TransferFunction.from_points([(0.0, *color, alpha0), (1.0, *color, alpha0)], dtype=dtype)
+
+
+def _path_through_box(camera, shape, spacing):
+    """Each ray's (entry, exit) parameters through the volume's box, by the slab method in
+    NumPy (independent of the renderer's own intersection): the box of voxel cells,
+    centred at the origin, longest side 1."""
+    origins, dirs = (np.asarray(a, np.float64) for a in camera.rays())
+    extent = np.asarray(shape, float) * np.asarray(spacing, float)
+    half = extent / extent.max() / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lo, hi = (-half - origins) / dirs, (half - origins) / dirs
+    near = np.max(np.where(dirs == 0, -np.inf, np.minimum(lo, hi)), axis=-1)
+    far = np.min(np.where(dirs == 0, np.inf, np.maximum(lo, hi)), axis=-1)
+    outside = np.any((dirs == 0) & (np.abs(origins) > half), axis=-1)
+    return np.where(outside, 0.0, np.maximum(near, 0.0)), np.where(outside, 0.0, far)
 
 
 def _ortho_along_h(image_shape=(6, 6), width=1.5):
@@ -48,9 +64,8 @@ def test_uniform_slab_matches_beer_lambert(step):
     img = march(jnp.full(shape, 0.5), _constant_tf(alpha0), _ortho_along_h(), spacing=spacing,
                 step=step)
     # Rays along h that hit the box cross it completely: 12 voxels of 1.5 mm.
-    origins, dirs = _ortho_along_h().rays()
-    t0, t1 = intersect_box(origins, dirs, box_half_extent(shape, spacing)[0])
-    hit = np.asarray(t1 > t0)
+    t0, t1 = _path_through_box(_ortho_along_h(), shape, spacing)
+    hit = t1 > t0
     assert hit.sum() > 0 and (~hit).sum() > 0
     expected_alpha = 1 - np.exp(-tau * shape[1] * spacing[1])
     np.testing.assert_allclose(np.asarray(img[..., 3])[hit], expected_alpha, atol=1e-5)
@@ -63,9 +78,8 @@ def test_uniform_slab_oblique_rays_match_path_lengths():
     alpha0, shape = 0.05, (10, 10, 10)
     cam = Camera.orbit(azimuth=33.0, elevation=21.0, image_shape=(9, 9))
     img = march(jnp.full(shape, 0.5), _constant_tf(alpha0), cam, step=0.7)
-    origins, dirs = cam.rays()
-    t0, t1 = intersect_box(origins, dirs, box_half_extent(shape, (1, 1, 1))[0])
-    path_mm = np.maximum(np.asarray(t1 - t0), 0) * 10.0
+    t0, t1 = _path_through_box(cam, shape, (1, 1, 1))
+    path_mm = np.maximum(t1 - t0, 0) * 10.0
     np.testing.assert_allclose(img[..., 3], 1 - (1 - alpha0) ** path_mm, atol=1e-5)
 
 
@@ -107,20 +121,122 @@ def test_jit_vmap_grad_of_march():
     tf = preset("grey")
     cam = Camera.orbit(azimuth=10.0, image_shape=(5, 4))
     eager = march(vol, tf, cam)
-    jitted = eqx.filter_jit(march)(vol, tf, cam)
+    jitted_march = eqx.filter_jit(march)
+    jitted = jitted_march(vol, tf, cam)
     np.testing.assert_allclose(jitted, eager, atol=1e-12)
     # vmap over volumes and over cameras; grads w.r.t. the volume and the camera.
-    vols = jnp.stack([vol, 0.5 * vol])
-    batched = jax.vmap(lambda v: march(v, tf, cam))(vols)
-    np.testing.assert_allclose(batched[1], march(0.5 * vol, tf, cam), atol=1e-12)
-    cams = jax.vmap(lambda a: Camera.orbit(azimuth=a, image_shape=(5, 4)))(jnp.array([10.0, 50.0]))
+    # every batch element equals its own render (a loop), not just one of them
+    scales = (1.0, 0.5, 0.8)
+    batched = jax.vmap(lambda v: march(v, tf, cam))(jnp.stack([s * vol for s in scales]))
+    for i, s in enumerate(scales):
+        np.testing.assert_allclose(batched[i], jitted_march(s * vol, tf, cam), atol=1e-12)
+    azimuths = (10.0, 50.0, -70.0)
+    cams = jax.vmap(lambda a: Camera.orbit(azimuth=a, image_shape=(5, 4)))(jnp.array(azimuths))
     per_cam = eqx.filter_vmap(lambda c: march(vol, tf, c))(cams)
     np.testing.assert_allclose(per_cam[0], eager, atol=1e-12)
+    for i, a in enumerate(azimuths):
+        np.testing.assert_allclose(
+            per_cam[i], jitted_march(vol, tf, Camera.orbit(azimuth=a, image_shape=(5, 4))),
+            atol=1e-12)
+    assert not np.allclose(per_cam[1], per_cam[2], atol=1e-3)
     g = jax.jit(jax.grad(lambda v: jnp.sum(march(v, tf, cam, shading="phong"))))(vol)
     assert np.all(np.isfinite(g)) and float(jnp.sum(jnp.abs(g))) > 0
     g_cam = jax.jit(jax.grad(
         lambda a: jnp.sum(march(vol, tf, Camera.orbit(azimuth=a, image_shape=(5, 4))))))(20.0)
     assert np.isfinite(g_cam)
+
+
+def test_gradient_wrt_camera_matches_finite_differences():
+    # d(image)/d(azimuth, elevation) and d(image)/d(eye), perspective and orthographic,
+    # against central differences in float64 (the rays depend on the camera)
+    vol = _smooth_volume(8)
+    tf = TransferFunction.from_points([(0.0, 0.1, 0.2, 0.3, 0.05), (0.5, 0.95, 0.5, 0.2, 0.3),
+                                       (1.0, 0.9, 0.9, 0.95, 0.7)])
+    weights = jnp.asarray(np.random.default_rng(4).random((5, 4, 4)))
+
+    @jax.jit
+    def by_angles(angles):
+        cam = Camera.orbit(azimuth=angles[0], elevation=angles[1], image_shape=(5, 4))
+        return jnp.sum(weights * march(vol, tf, cam, step=0.5, shading="phong"))
+
+    @jax.jit
+    def by_eye(eye):
+        cam = Camera(eye, jnp.zeros(3), jnp.asarray([1.0, 0.0, 0.0]), jnp.asarray(30.0),
+                     jnp.asarray(0.9), image_shape=(5, 4), projection="orthographic")
+        return jnp.sum(weights * march(vol, tf, cam, step=0.5))
+
+    g = check_grad_fd(by_angles, jnp.asarray([25.0, 10.0]), rtol=1e-4)
+    assert np.all(np.abs(np.asarray(g)) > 1e-6)
+    g = check_grad_fd(by_eye, jnp.asarray([0.6, 1.9, 0.9]), rtol=1e-4)
+    assert float(jnp.max(jnp.abs(g))) > 1e-6
+
+
+def _blinn_phong_reference(color, gradient, light, view, ambient, ka, kd, ks, n):
+    # the module docstring of volshade.shading, written out in NumPy
+    color, gradient, light, view, ambient = map(np.asarray, (color, gradient, light, view, ambient))
+    norm = np.linalg.norm(gradient, axis=-1, keepdims=True)
+    normal = np.where(norm > 0, -gradient / np.where(norm > 0, norm, 1), 0)
+    half = (light + view) / np.linalg.norm(light + view, axis=-1, keepdims=True)
+    n_l = np.abs(np.sum(normal * light, axis=-1, keepdims=True))
+    n_h = np.abs(np.sum(normal * half, axis=-1, keepdims=True))
+    return color * (ka * ambient + kd * n_l) + ks * n_h ** n
+
+
+def test_blinn_phong_matches_the_documented_formula():
+    # I = c (ka A + kd |N.L|) + ks |N.H|^n with N = -g/|g|, H = (L+V)/|L+V|: random
+    # samples with N.L of both signs (two-sided: |N.L|), a zero gradient (ambient only),
+    # grey and RGB ambient, specular on and off
+    rng = np.random.default_rng(7)
+    m = 64
+
+    def unit(x):
+        return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+    color = rng.uniform(0, 1, (m, 3))
+    gradient = rng.normal(size=(m, 3)) * rng.uniform(0.1, 5, (m, 1))
+    gradient[0] = 0.0
+    light, view = unit(rng.normal(size=(m, 3))), unit(rng.normal(size=(m, 3)))
+    light[1] = unit(gradient[1])  # N.L = -1 exactly: the diffuse term is kd, not 0
+    n_l = np.sum(-unit(gradient[1:]) * light[1:], axis=-1)
+    assert (n_l < -0.2).sum() > 5 and (n_l > 0.2).sum() > 5
+    for ambient in (rng.uniform(0, 1, (m, 1)), rng.uniform(0, 1, (m, 3))):
+        for ka, kd, ks, n in ((0.3, 0.6, 0.0, 10.0), (0.2, 0.7, 0.5, 7.0), (0.0, 1.0, 0.0, 1.0)):
+            got = blinn_phong(*map(jnp.asarray, (color, gradient, light, view, ambient)),
+                              Phong(ambient=ka, diffuse=kd, specular=ks, shininess=n))
+            expected = _blinn_phong_reference(color, gradient, light, view, ambient, ka, kd, ks, n)
+            np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-12, atol=1e-14)
+            np.testing.assert_allclose(np.asarray(got[0]), color[0] * ka * ambient[0], atol=1e-15)
+            np.testing.assert_allclose(np.asarray(got[1]),
+                                       color[1] * (ka * ambient[1] + kd)
+                                       + ks * abs(np.dot(light[1], unit(light[1] + view[1]))) ** n,
+                                       rtol=1e-12)
+
+
+@pytest.mark.parametrize("azimuth, elevation", [(0.0, 0.0), (30.0, 20.0), (180.0, 0.0)])
+def test_phong_render_of_a_ramp_along_h_matches_hand_computation(azimuth, elevation):
+    # a volume linear along h has normals +-h everywhere (the regression gradient is exact
+    # in direction, also at the edges); with a constant transfer function every sample has
+    # colour s = c (ka + kd x) + ks x^n, x = |N.V| = |cos e cos a| (headlight: L = V = H),
+    # so the image is s times the accumulated opacity, and c times it unshaded
+    shape = (6, 8, 6)
+    color = np.array([0.2, 0.6, 1.0])
+    tf = _constant_tf(0.15, color=tuple(color))
+    ramp = jnp.broadcast_to(jnp.linspace(0.0, 1.0, shape[1])[None, :, None], shape)
+    cam = Camera.orbit(azimuth=azimuth, elevation=elevation, image_shape=(7, 7),
+                       projection="orthographic", width=1.0)
+    x = abs(np.cos(np.deg2rad(elevation)) * np.cos(np.deg2rad(azimuth)))
+    render = eqx.filter_jit(march)
+    plain = np.asarray(render(ramp, tf, cam, step=0.6))
+    alpha = plain[..., 3:]
+    assert alpha[3, 3, 0] > 0.3 and (alpha[..., 0] == 0).any()
+    np.testing.assert_allclose(plain[..., :3], color * alpha, atol=1e-12)
+    for ka, kd, ks, n in ((0.35, 0.65, 0.0, 24.0), (0.1, 0.5, 0.4, 3.0)):
+        phong = Phong(ambient=ka, diffuse=kd, specular=ks, shininess=n)
+        for vol in (ramp, 1.0 - ramp):  # N.V = -x and +x: two-sided
+            lit = np.asarray(render(vol, tf, cam, step=0.6, shading="phong", phong=phong))
+            s = color * (ka + kd * x) + ks * x ** n
+            np.testing.assert_allclose(lit[..., 3:], alpha, atol=1e-12)
+            np.testing.assert_allclose(lit[..., :3], s * alpha, atol=1e-12)
 
 
 @pytest.mark.parametrize("shading", ["none", "phong"])
@@ -167,9 +283,8 @@ def test_opaque_volume_leaves_missed_rays_and_the_space_behind_it_empty():
     cam = Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=(6, 6),
                        projection="orthographic", width=1.5)
     img = np.asarray(march(jnp.ones((8, 8, 8)), tf, cam, background=(1.0, 1.0, 1.0)))
-    origins, dirs = cam.rays()
-    t0, t1 = intersect_box(origins, dirs, box_half_extent((8, 8, 8), (1, 1, 1))[0])
-    hit = np.asarray(t1 > t0)
+    t0, t1 = _path_through_box(cam, (8, 8, 8), (1, 1, 1))
+    hit = t1 > t0
     assert hit.any() and not hit.all()
     np.testing.assert_array_equal(img[~hit], [[1.0, 1.0, 1.0, 0.0]] * int((~hit).sum()))
     np.testing.assert_allclose(img[hit], [[0.3, 0.4, 0.5, 1.0]] * int(hit.sum()), atol=1e-12)
@@ -296,3 +411,19 @@ def test_camera_geometry_and_png(tmp_path):
 
     img = io.imread(tmp_path / "img.png")
     assert img.shape == (4, 6, 3) and int(img[0, 0, 0]) in (127, 128)
+
+
+def test_intersect_box_matches_the_numpy_slab_method():
+    # the renderer's clipping against the independent NumPy version, for rays that hit,
+    # miss, graze and run parallel to faces (axis-aligned views)
+    shape, spacing = (8, 12, 10), (1.0, 1.5, 0.8)
+    half = box_half_extent(shape, spacing)[0]
+    for azimuth, elevation in ((0.0, 0.0), (90.0, 0.0), (33.0, 21.0), (-140.0, 65.0)):
+        cam = Camera.orbit(azimuth=azimuth, elevation=elevation, image_shape=(9, 11))
+        t0, t1 = intersect_box(*cam.rays(), half)
+        want0, want1 = _path_through_box(cam, shape, spacing)
+        hit = want1 > want0
+        assert hit.any() and not hit.all()
+        np.testing.assert_array_equal(np.asarray(t1 > t0), hit)
+        np.testing.assert_allclose(np.asarray(t0)[hit], want0[hit], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(t1)[hit], want1[hit], atol=1e-12)

@@ -6,11 +6,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference_composition as ref
 
 import volshade as vs
 import volshade.scene as scene_module
 from volshade.camera import Camera
-from volshade.importance import Focus, Importance
+from volshade.importance import Focus, Importance, focus_weights
 from volshade.lao import LocalAmbientOcclusion, lao
 from volshade.obscurance import ObscuranceParams, obscurance
 from volshade.render import march
@@ -132,6 +133,103 @@ def test_lao_obscurance_saliency_and_importance_effects_match_their_kernels():
     assert not np.allclose(render(s, cam), march(vol, tf, cam), atol=1e-3)
 
 
+_PROFILE = np.random.default_rng(3).uniform(0.1, 0.95, 12)  # intensities along h
+_TABLE = np.array([[0.0, 0.1, 0.1, 0.1, 0.0], [0.3, 0.9, 0.2, 0.1, 0.35],
+                   [1.0, 0.1, 0.3, 0.9, 0.25]])  # rows (x, r, g, b, opacity per 1 mm)
+
+
+def _reference_importance_ray(weights, global_weight, background, *, sh, step):
+    # one ray along -h through a volume that varies along h only: samples at the midpoints
+    # of `step` mm segments from the +h face (the last one shorter), intensity linear
+    # between voxel centres (held past the outer centres), opacity corrected to the
+    # segment, I_s = W_g (W_int x + W_tau ln(1 + tau) + W_unocc (20 - sum tau d)) with the
+    # optical depth of the samples in front, then eq. 8 and the background layer
+    # (reference_composition)
+    w_int, w_ext, w_unocc, w_bg = weights
+    n = len(_PROFILE)
+    length = n * sh
+    colors, alphas, importances, depth, k = [], [], [], 0.0, 0
+    while k * step < length - 1e-9:
+        seg = min(step, length - k * step)
+        index = (length - (k * step + seg / 2)) / sh - 0.5
+        x = np.interp(index, np.arange(n), _PROFILE)
+        alpha0 = np.interp(x, _TABLE[:, 0], _TABLE[:, 4])
+        color = np.array([np.interp(x, _TABLE[:, 0], _TABLE[:, c]) for c in (1, 2, 3)])
+        tau = -np.log1p(-alpha0)
+        alpha = 1 - (1 - alpha0) ** seg
+        importances.append(global_weight * (w_int * x + w_ext * np.log1p(tau)
+                                            + w_unocc * (20 - depth)))
+        colors.append(alpha * color)
+        alphas.append(alpha)
+        depth += tau * seg
+        k += 1
+    return (ref.importance(colors, alphas, importances, background, global_weight * w_bg),
+            ref.standard(colors, alphas, background))
+
+
+@pytest.mark.parametrize("case", ["intensity", "extinction", "unocclusion", "focus"])
+def test_importance_render_matches_a_per_ray_reference(case):
+    # importance-aware rendering of parallel rays along -h through a (4, 12, 4) volume with
+    # 0.75 mm voxels along h (9 mm paths), one importance measure at a time, equals an
+    # independent per-ray transcription of sec. IV and eq. 8; the focus case also checks
+    # the per-ray global weights of a Focus (w = o + (n - o) exp(-r^2 / 2R^2), pixels)
+    weights = {"intensity": (6.0, 0.0, 0.0, 0.0), "extinction": (0.0, 3.0, 0.0, 0.0),
+               "unocclusion": (0.0, 0.0, 0.8, 17.0), "focus": (6.0, 0.0, 0.0, 2.0)}[case]
+    imp = Importance(intensity=weights[0], extinction=weights[1], unocclusion=weights[2],
+                     background=weights[3])
+    image_shape, background = (4, 6), np.array([0.2, 0.3, 0.4])
+    focus, g = None, np.ones(image_shape)
+    if case == "focus":
+        focus = Focus(center=(0.3, 0.6), radius=0.3, kind="gaussian", inside=1.5, outside=0.2)
+        rows, cols = np.meshgrid(np.arange(4.0), np.arange(6.0), indexing="ij")
+        r2 = (rows - (0.3 * 4 - 0.5)) ** 2 + (cols - (0.6 * 6 - 0.5)) ** 2
+        g = 0.2 + 1.3 * np.exp(-r2 / (2 * (0.3 * 4) ** 2))
+    tf = vs.TransferFunction.from_points(_TABLE)
+    vol = jnp.broadcast_to(jnp.asarray(_PROFILE)[None, :, None], (4, 12, 4))
+    cam = Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=image_shape,
+                       projection="orthographic", width=0.25)  # every ray crosses the box
+    scene = Scene(volume=vol, transfer=tf, spacing=(1.0, 0.75, 1.0), step=0.7,
+                  composition="importance", importance=imp, focus=focus, background=background)
+    image = np.asarray(render(scene, cam))
+    standard = np.asarray(render(Scene(volume=vol, transfer=tf, spacing=(1.0, 0.75, 1.0),
+                                       step=0.7, background=background), cam))
+    for i, j in np.ndindex(*image_shape):
+        expected, std = _reference_importance_ray(weights, g[i, j], background, sh=0.75,
+                                                  step=0.7)
+        np.testing.assert_allclose(image[i, j], expected, atol=1e-10)
+        np.testing.assert_allclose(standard[i, j], std, atol=1e-10)
+    assert np.max(np.abs(image - standard)) > 5e-3  # the measure changes the image
+
+
+def test_focus_weights_on_a_non_square_image():
+    # (row, column) order on an 8 x 16 image: Focus fractions are of (H, W), the radius a
+    # fraction of H; the weights follow o + (n - o) f(r) with r in pixels from the centre
+    h, w = 8, 16
+    rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    center = (2.5 / h, 11.5 / w)  # pixel (2, 11)
+    for kind in ("gaussian", "circular", "screen_door"):
+        weights = np.asarray(Focus(center=center, radius=0.25, kind=kind, inside=2.0,
+                                   outside=0.5).weights((h, w)))
+        assert weights.shape == (h, w)
+        r2 = (rows - 2.0) ** 2 + (cols - 11.0) ** 2
+        gauss = np.exp(-r2 / (2 * 2.0 ** 2))  # R = 0.25 * 8 pixels
+        assert weights[2, 11] == 2.0
+        if kind == "gaussian":
+            assert np.unravel_index(np.argmax(weights), weights.shape) == (2, 11)
+            np.testing.assert_allclose(weights, 0.5 + 1.5 * gauss, rtol=1e-12)
+        elif kind == "circular":
+            np.testing.assert_array_equal(weights, np.where(r2 <= 4.0, 2.0, 0.5))
+        else:  # a dither of the Gaussian: certain near the centre, absent far from it
+            assert set(np.unique(weights)) <= {0.5, 2.0}
+            assert np.all(weights[gauss > 15.5 / 16] == 2.0)
+            assert np.all(weights[gauss < 0.5 / 16] == 0.5)
+            assert 0.1 < np.mean(weights[(gauss > 0.2) & (gauss < 0.8)] == 2.0) < 0.9
+    direct = np.asarray(focus_weights((h, w), center=(6.0, 3.0), radius=3.0, kind="gaussian",
+                                      inside=1.0, outside=0.0))
+    np.testing.assert_allclose(direct, np.exp(-((rows - 6.0) ** 2 + (cols - 3.0) ** 2) / 18.0),
+                               rtol=1e-12)
+
+
 def test_importance_with_zero_weights_equals_standard_render():
     cam = Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(5, 5))
     vol = _volume()
@@ -163,8 +261,12 @@ def test_non_finite_parameters_are_refused_by_name(jit):
     tf = vs.transfer.preset("shells")
     cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(6, 6))
     render = eqx.filter_jit(vs.render) if jit else vs.render
+    with pytest.raises(ValueError, match="`diffuse` must be a finite number"):
+        vs.Phong(diffuse=jnp.nan)  # known values: refused at construction
+    phong_scene = vs.Scene(volume=vol, transfer=tf, shading="phong")
     cases = [
-        (vs.Scene(volume=vol, transfer=tf, shading="phong", phong=vs.Phong(diffuse=jnp.nan)),
+        # a NaN that skipped construction (a fit, eqx.tree_at): refused at render
+        (eqx.tree_at(lambda s: s.phong.diffuse, phong_scene, jnp.asarray(jnp.nan)),
          cam, "scene.phong.diffuse"),
         (vs.Scene(volume=vol, transfer=tf, background=(jnp.inf, 0.0, 0.0)), cam,
          "scene.background"),

@@ -3,6 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import check_grad_fd
 
 from volshade import transfer
 from volshade.transfer import IntervalFeature, TransferFunction, feature_opacities
@@ -39,6 +40,34 @@ def test_transfer_function_under_jit_vmap_grad():
     g = jax.grad(lambda t: jnp.sum(t.opacity(x, step=2.0)))(tf)
     assert np.all(np.isfinite(g.opacities)) and np.all(np.isfinite(g.points))
     assert float(jnp.sum(jnp.abs(g.opacities))) > 0
+
+
+def test_gradient_wrt_control_points_and_values_matches_finite_differences():
+    # d/d(points, colors, opacities) of opacity (corrected), extinction and colour at
+    # values between the control points, against central differences in float64
+    tf = TransferFunction.from_points([(0.0, 0.1, 0.2, 0.3, 0.05), (0.3, 0.9, 0.5, 0.2, 0.4),
+                                       (0.55, 0.4, 0.7, 0.6, 0.2), (1.0, 0.3, 0.8, 0.9, 0.7)])
+    x = jnp.asarray(np.random.default_rng(0).uniform(0.02, 0.98, 40))
+    w = jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, (40, 5)))
+
+    def loss_of(field):
+        @jax.jit
+        def loss(values):
+            t = eqx.tree_at(lambda t: getattr(t, field), tf,
+                            values.reshape(getattr(tf, field).shape))
+            return (jnp.sum(w[:, 0] * t.opacity(x, step=2.0)) + jnp.sum(w[:, 1] * t.extinction(x))
+                    + jnp.sum(w[:, 2:] * t.color(x)))
+        return loss
+
+    for field in ("points", "colors", "opacities"):
+        g = check_grad_fd(loss_of(field), getattr(tf, field).ravel(), n_dirs=4)
+        assert float(jnp.min(jnp.abs(g))) > 1e-3, (field, g)  # every control value matters
+    # analytically: at x between p0 and p1 the opacity is a0 + (a1 - a0) (x - p0) / (p1 - p0),
+    # so d/dp0 = (a1 - a0) (x - p1) / (p1 - p0)^2 and d/dp1 = -(a1 - a0) (x - p0) / (p1 - p0)^2
+    g = jax.grad(lambda p: TransferFunction(p, tf.colors, tf.opacities).opacity(
+        jnp.asarray(0.2)))(tf.points)
+    np.testing.assert_allclose(g, [-(0.4 - 0.05) * (0.3 - 0.2) / 0.3 ** 2,
+                                   -(0.4 - 0.05) * 0.2 / 0.3 ** 2, 0, 0], rtol=1e-12)
 
 
 def test_from_points_errors():
