@@ -1,6 +1,5 @@
-"""Test helpers: tolerances per dtype, tree comparison and float64 finite differences."""
+"""Test helpers: tolerances per dtype and float64 finite differences."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,10 +8,6 @@ import numpy as np
 def tol(dtype) -> float:
     """About 100 x eps of ``dtype``."""
     return 100 * float(jnp.finfo(dtype).eps)
-
-
-def tree_allclose(x, y, *, rtol=1e-5, atol=1e-8) -> bool:
-    return eqx.tree_equal(x, y, typematch=True, rtol=rtol, atol=atol) is True
 
 
 def central_difference(f, x, direction, h=1e-6):

@@ -511,4 +511,19 @@ def test_jaxpr_has_no_python_loop_over_samples():
 
 def test_state_is_a_pytree_usable_by_eqx():
     s = importance_init((3,), jnp.float32)
-    assert eqx.tree_equal(s, importance_init((3,), jnp.float32))
+    # empty rays: colour 0, transmittance 1, peak importance and offset 0
+    want = ImportanceState(color=jnp.zeros((3, 3), jnp.float32),
+                           transmittance=jnp.ones(3, jnp.float32),
+                           peak_importance=jnp.zeros(3, jnp.float32),
+                           importance_offset=jnp.zeros(3, jnp.float32))
+    assert bool(eqx.tree_equal(s, want, typematch=True))
+    assert len(jax.tree_util.tree_leaves(s)) == 4
+    doubled = jax.tree_util.tree_map(lambda x: 2 * x + 1, s)
+    assert isinstance(doubled, ImportanceState)
+    np.testing.assert_array_equal(doubled.transmittance, 3.0)
+    np.testing.assert_array_equal(doubled.color, 1.0)
+    # nothing composited: the background, with alpha 0, whatever its importance
+    bg = jnp.asarray([0.25, 0.5, 0.75], jnp.float32)
+    for bgi in (-jnp.inf, 0.0, 5.0):
+        rgba = importance_finish(s, bg, jnp.asarray(bgi, jnp.float32))
+        np.testing.assert_allclose(rgba, np.tile([0.25, 0.5, 0.75, 0.0], (3, 1)), atol=1e-7)

@@ -151,12 +151,26 @@ def test_diagonal_distance_is_steps_times_step_length():
 
 def test_user_callable_rho_and_dtype():
     vol = jnp.asarray(random_volume((8, 8, 8), 8), jnp.float32)
-    got = obscurance(vol, directions=DIRS12, d_max=4.0, rho=lambda d, dm: (d / dm) ** 2)
+    square = lambda d, dm: (d / dm) ** 2  # noqa: E731
+    got = obscurance(vol, directions=DIRS12, d_max=4.0, rho=square)
     assert got.dtype == jnp.float32
-    want = ref.obscurance(np.asarray(vol, np.float64), DIRS12, 4.0, "linear")
-    assert got.shape == want.shape
+    # the reference with the same callable: the float32 values, exactly in float64, give
+    # the same occluders (same comparisons), so only the rounding of d and rho differs
+    dists = ref.occluder_distances(np.asarray(vol, np.float64), DIRS12)
+    occluded = dists <= 4.0
+    want = np.where(occluded, square(np.where(occluded, dists, 4.0), 4.0), 1.0).mean(0)
+    assert 0.5 < occluded.mean() < 1 and np.ptp(want) > 0.5  # rho matters here
+    np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-6)
+    # white occluders under a white ambient: colour bleeding is the grey value per channel
     rgb = obscurance(vol, directions=DIRS12, d_max=4.0, colors=jnp.ones((8, 8, 8, 3), jnp.float32))
     assert rgb.dtype == jnp.float32 and rgb.shape == (8, 8, 8, 3)
+    np.testing.assert_allclose(
+        np.asarray(rgb), np.repeat(ref.obscurance(np.asarray(vol, np.float64), DIRS12, 4.0,
+                                                  "sqrt")[..., None], 3, -1), rtol=0, atol=1e-6)
+    rgb_square = obscurance(vol, directions=DIRS12, d_max=4.0, rho=square,
+                            colors=jnp.ones((8, 8, 8, 3), jnp.float32))
+    np.testing.assert_allclose(np.asarray(rgb_square), np.repeat(want[..., None], 3, -1), rtol=0,
+                               atol=1e-6)
 
 
 # ------------------------------------------------------------------ corner phantom
@@ -237,7 +251,7 @@ def test_grad_colours_and_ambient_match_finite_differences():
     check_grad_fd(f, colors)
     h = jax.jit(lambda a: jnp.sum(w * obscurance(vol, directions=DIRS12, d_max=3.0,
                                                  colors=colors, ambient=a)))
-    check_grad_fd(h, jnp.array([1.0, 0.5, 0.2]))
+    check_grad_fd(h, jnp.array([0.9, 0.5, 0.2]))
 
 
 def test_grad_density_is_zero_and_finite_at_hard_cases():
@@ -281,6 +295,64 @@ def test_obscurance_shading_blinn_phong():
     np.testing.assert_allclose(np.asarray(rgb), np.asarray(out)[:, None] * np.ones(3), rtol=1e-14)
     jac = jax.jit(jax.jacrev(lambda x: obscurance_shading(x, light, view, obs, k_s=0.5)))(n)
     assert bool(jnp.all(jnp.isfinite(jac)))
+
+
+# ------------------------------------------------------------------ float32 against float64
+
+
+def float32_exact(x):
+    """``x`` rounded to float32, in float64: both precisions then compare the same values
+    (strictly greater, below low, at or above high) and differ only in their arithmetic."""
+    return np.asarray(np.asarray(x, np.float32), np.float64)
+
+
+@pytest.mark.parametrize("rho", ["exponential", "sqrt"])
+def test_obscurance_float32_agrees_with_float64(rho):
+    vol = float32_exact(random_volume((10, 11, 9), 15))
+    colors = float32_exact(np.random.default_rng(16).random((10, 11, 9, 3)))
+    amb = (0.9, 0.8, 0.7)
+    out = {}
+    for dtype in (jnp.float32, jnp.float64):
+        v = jnp.asarray(vol, dtype)
+        grey = obscurance(v, directions=DIRS12, d_max=jnp.asarray(4.5, dtype), rho=rho)
+        rgb = obscurance(v, directions=DIRS12, d_max=jnp.asarray(4.5, dtype), rho=rho,
+                         colors=jnp.asarray(colors, dtype), ambient=amb)
+        assert grey.dtype == dtype and rgb.dtype == dtype
+        out[dtype] = (np.asarray(grey, np.float64), np.asarray(rgb, np.float64))
+    for lo, hi in zip(out[jnp.float32], out[jnp.float64]):
+        assert np.ptp(hi) > 0.3
+        np.testing.assert_allclose(lo, hi, rtol=0, atol=2e-6)
+    # and float64 is the reference's value
+    np.testing.assert_allclose(out[jnp.float64][0], ref.obscurance(vol, DIRS12, 4.5, rho),
+                               rtol=0, atol=1e-13)
+
+
+def test_threshold_and_shading_float32_agree_with_float64():
+    rng = np.random.default_rng(17)
+    obs = float32_exact(rng.random((6, 7, 5)))
+    obs[0, 0, :3] = np.float32(0.25), np.float32(0.75), 1.0  # exactly at low / high
+    normal = float32_exact(rng.standard_normal((6, 7, 5, 3)))
+    normal[1, 1] = 0.0  # a zero normal
+    light, view = np.array([0.3, 0.2, 0.9]), np.array([0.9, 0.1, 0.3])
+    out = {}
+    for dtype in (jnp.float32, jnp.float64):
+        o = threshold(jnp.asarray(obs, dtype), np.float32(0.25), np.float32(0.75))
+        grey = obscurance_shading(jnp.asarray(normal, dtype), light, view, o, k_d=0.7,
+                                  k_s=0.4, shininess=12.0)
+        rgb = obscurance_shading(jnp.asarray(normal, dtype), light, view,
+                                 jnp.stack([o, o ** 2, 1 - o], -1), k_d=0.7, k_s=0.4,
+                                 shininess=12.0)
+        assert o.dtype == grey.dtype == rgb.dtype == dtype
+        out[dtype] = [np.asarray(x, np.float64) for x in (o, grey, rgb)]
+    lo, hi = out[jnp.float32], out[jnp.float64]
+    # the thresholds: 0 up to low, 1 at or above high, the same in both precisions
+    np.testing.assert_array_equal(lo[0] == 0, obs <= 0.25)
+    np.testing.assert_array_equal(hi[0] == 0, obs <= 0.25)
+    np.testing.assert_array_equal(lo[0] == 1, obs >= 0.75)
+    np.testing.assert_array_equal(hi[0] == 1, obs >= 0.75)
+    for a, b in zip(lo, hi):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+    assert np.all(hi[1][1, 1] == 0) and np.all(lo[1][1, 1] == 0)  # zero normal: dark
 
 
 # ------------------------------------------------------------------ errors

@@ -105,6 +105,56 @@ def test_saliency_grad_and_jit():
     check_grad_fd(f, o)
 
 
+def lstsq_gradient(vol, spacing, size, weighting):
+    """Weighted least-squares plane per voxel (Neumann et al. 2000) by lstsq on the full
+    4-parameter system over the edge-replicated neighbourhood; centre weight 0 (x = 0)."""
+    vol = np.asarray(vol, np.float64)
+    h = size // 2
+    offsets = np.stack(np.meshgrid(*[np.arange(-h, h + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    x = offsets * np.asarray(spacing, np.float64)
+    r = np.linalg.norm(x, axis=1)
+    w = {"distance": r, "inverse_distance": np.where(r > 0, 1 / np.maximum(r, 1e-300), 0.0),
+         "uniform": np.ones_like(r)}[weighting]
+    design = np.sqrt(w)[:, None] * np.concatenate([x, np.ones((len(x), 1))], axis=1)
+    padded = np.pad(vol, h, mode="edge")
+    n = vol.shape
+    values = np.stack([padded[h + i:h + i + n[0], h + j:h + j + n[1], h + k:h + k + n[2]].ravel()
+                       for i, j, k in offsets])
+    coef = np.linalg.lstsq(design, np.sqrt(w)[:, None] * values, rcond=None)[0]
+    return coef[:3].T.reshape(*n, 3)
+
+
+@pytest.mark.parametrize("size", [3, 5])
+def test_saliency_weighting_matches_least_squares_reference(size):
+    # a random field: the three weightings give three different saliencies
+    o = np.random.default_rng(6).random((8, 9, 7))
+    spacing = (1.0, 2.0, 0.5)
+    results = {}
+    for weighting in ("distance", "inverse_distance", "uniform"):
+        got = np.asarray(saliency(jnp.asarray(o), size=size, spacing=spacing,
+                                  weighting=weighting))
+        mag = np.linalg.norm(lstsq_gradient(o, spacing, size, weighting), axis=-1)
+        np.testing.assert_allclose(got, mag / mag.max(), rtol=1e-10, atol=1e-12)
+        results[weighting] = got
+    for a, b in (("distance", "inverse_distance"), ("distance", "uniform"),
+                 ("inverse_distance", "uniform")):
+        assert np.abs(results[a] - results[b]).max() > 1e-2, (a, b)
+    assert np.array_equal(results["distance"],
+                          np.asarray(saliency(jnp.asarray(o), size=size, spacing=spacing)))
+
+
+def test_saliency_float32_agrees_with_float64():
+    grid = np.stack(np.meshgrid(*[np.linspace(0, 1, 10)] * 3, indexing="ij"))
+    smooth = 0.5 + 0.4 * np.sin(3 * grid[0]) * np.cos(2 * grid[1] + grid[2])
+    rgb = np.random.default_rng(7).random((10, 10, 10, 3))
+    for o, kwargs in ((smooth, dict(size=5, spacing=(1.0, 2.0, 0.5))),
+                      (rgb, dict(size=3, weighting="inverse_distance"))):
+        hi = saliency(jnp.asarray(o, jnp.float64), **kwargs)
+        lo = saliency(jnp.asarray(o, jnp.float32), **kwargs)
+        assert hi.dtype == jnp.float64 and lo.dtype == jnp.float32
+        np.testing.assert_allclose(np.asarray(lo, np.float64), np.asarray(hi), rtol=0, atol=1e-5)
+
+
 # ------------------------------------------------------------------ viewpoint saliency
 
 
@@ -181,6 +231,26 @@ def test_viewpoint_saliency_grad_vmap_dtype():
                                np.asarray(viewpoint_saliency(sal, 1 - alpha, VIEWS)), rtol=1e-14)
     out32 = viewpoint_saliency(sal.astype(jnp.float32), alpha.astype(jnp.float32), VIEWS)
     assert out32.dtype == jnp.float32
+
+
+@pytest.mark.parametrize("visibility", ["transmittance", "contribution"])
+def test_viewpoint_saliency_float32_agrees_with_float64(visibility):
+    rng = np.random.default_rng(8)
+    sal, alpha = rng.random((9, 8, 10)), rng.random((9, 8, 10)) ** 3
+    alpha[3, 2:5] = 1.0  # opaque voxels
+    views = VIEWS
+    out = {}
+    for dtype in (jnp.float32, jnp.float64):
+        args = (jnp.asarray(sal, dtype), jnp.asarray(alpha, dtype), views)
+        out[dtype] = viewpoint_saliency(*args, visibility=visibility)
+        assert out[dtype].dtype == dtype
+        per_area = viewpoint_saliency(*args, visibility=visibility, per_area=True)
+        out[dtype, "per_area"] = np.asarray(per_area, np.float64)
+    hi = np.asarray(out[jnp.float64])
+    assert np.ptp(hi) > 0.01 * hi.max()  # the views differ
+    np.testing.assert_allclose(np.asarray(out[jnp.float32], np.float64), hi, rtol=1e-5)
+    np.testing.assert_allclose(out[jnp.float32, "per_area"], out[jnp.float64, "per_area"],
+                               rtol=1e-5)
 
 
 def test_viewpoint_saliency_gradient_exact_at_opacity_one():

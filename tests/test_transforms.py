@@ -6,10 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference_obscurance as ref
 from helpers import check_grad_fd
 
 import volshade as vs
-from volshade.directions import icosphere
+from volshade.directions import icosphere, icosphere_points
 
 RNG = np.random.default_rng(42)
 SHAPE = (8, 9, 7)
@@ -18,6 +19,8 @@ VOLUME = jnp.asarray(RNG.uniform(0, 1, SHAPE))
 VIEWS = icosphere(0)
 VIEWS4 = np.asarray(VIEWS[:4])  # concrete: directions set the sweep
 TF = vs.transfer.preset("grey")
+# saliency growing along d: the most / least salient views change (vs VOLUME's)
+SAL_RAMP = VOLUME * jnp.linspace(0.0, 1.0, SHAPE[0])[:, None, None]
 
 
 def _smooth(seed):
@@ -32,7 +35,7 @@ CASES = {
         lambda r: vs.LocalAmbientOcclusion(r, directions=6, samples=5, max_radius=5.0)(ALPHA),
         (jnp.asarray(3.3), jnp.asarray(4.1)), True),
     "occluder_distances": (
-        lambda d: vs.occluder_distances(d, directions=VIEWS4), (VOLUME, VOLUME ** 2), False),
+        lambda d: vs.occluder_distances(d, directions=VIEWS4), (VOLUME, 1 - VOLUME), False),
     "threshold": (lambda x: vs.threshold(x, 0.2, 0.8), (VOLUME * 0.5 + 0.25, _smooth(1)), True),
     "obscurance_shading": (
         lambda n: vs.obscurance_shading(n, (0.3, 0.2, 0.9), (0.9, 0.1, 0.3), VOLUME, k_s=0.5,
@@ -43,10 +46,11 @@ CASES = {
         lambda dm: vs.ObscuranceParams(d_max=dm, low=0.1, high=0.9)(VOLUME, TF),
         (jnp.asarray(3.5), jnp.asarray(6.0)), True),
     "saliency": (vs.saliency, (_smooth(1), _smooth(2)), True),
-    "projected_area": (lambda a: vs.projected_area(a, VIEWS), (ALPHA, ALPHA ** 2), False),
-    "most_salient_view": (lambda s: vs.most_salient_view(s, ALPHA, VIEWS), (VOLUME, ALPHA),
+    "projected_area": (lambda a: vs.projected_area(a, VIEWS),
+                       (ALPHA, jnp.where(VOLUME > 0.9, ALPHA, 0.0)), False),  # sparse: holes
+    "most_salient_view": (lambda s: vs.most_salient_view(s, ALPHA, VIEWS), (VOLUME, SAL_RAMP),
                           False),
-    "least_salient_view": (lambda s: vs.least_salient_view(s, ALPHA, VIEWS), (VOLUME, ALPHA),
+    "least_salient_view": (lambda s: vs.least_salient_view(s, ALPHA, VIEWS), (VOLUME, SAL_RAMP),
                            False),
     "modulate_opacity": (lambda a: vs.modulate_opacity(a, _smooth(1), threshold=0.3),
                          (ALPHA * 0.9, ALPHA ** 2), True),
@@ -72,6 +76,8 @@ def test_jit_equals_eager_and_vmap_equals_loop(name):
     fn, (x1, x2), _ = CASES[name]
     np.testing.assert_allclose(np.asarray(jax.jit(fn)(x1)), np.asarray(fn(x1)), rtol=1e-12,
                                atol=1e-12)
+    # different outputs, or a vmap that mixes up the batch elements would pass
+    assert not np.allclose(np.asarray(fn(x1)), np.asarray(fn(x2)), rtol=1e-6, atol=1e-6), name
     batched = jax.vmap(fn)(jnp.stack([x1, x2]))
     for k, x in enumerate((x1, x2)):
         np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(fn(x)), rtol=1e-12,
@@ -85,3 +91,30 @@ def test_grad_matches_finite_differences(name):
     weights = jnp.asarray(np.random.default_rng(7).normal(size=np.shape(out)))
     g = check_grad_fd(jax.jit(lambda x: jnp.sum(weights * fn(x))), x1, rtol=1e-4)
     assert np.all(np.isfinite(np.asarray(g))) and float(jnp.max(jnp.abs(g))) > 0
+
+
+def _threshold(o, low, high):
+    """Section 5.1 written out: 0 below low, 1 from high on, linear in between."""
+    return np.where(o < low, 0.0, np.where(o >= high, 1.0, (o - low) / (high - low)))
+
+
+@pytest.mark.parametrize("color_bleeding", [False, True])
+@pytest.mark.parametrize("density", ["opacity", "intensity"])
+def test_obscurance_params_value_matches_reference_and_thresholds(density, color_bleeding):
+    # the shells preset's opacity is not monotone in the intensity: the two densities
+    # give different occluders
+    vol = np.asarray(VOLUME[:7, :8, :6])
+    tf = vs.transfer.preset("shells")
+    kwargs = dict(d_max=3.5, low=0.5, high=0.85, rho="linear", level=0,
+                  color_bleeding=color_bleeding)
+    got = np.asarray(vs.ObscuranceParams(**kwargs, density=density)(jnp.asarray(vol), tf))
+    occluders = np.asarray(tf.opacity(jnp.asarray(vol))) if density == "opacity" else vol
+    colors = np.asarray(tf.color(jnp.asarray(vol))) if color_bleeding else None
+    raw = ref.obscurance(occluders, icosphere_points(0), 3.5, "linear", colors=colors)
+    # every band of the thresholds is populated, so dropping or moving them shows
+    for band in (raw < 0.5, (raw >= 0.5) & (raw < 0.85), raw >= 0.85):
+        assert band.mean() > 0.1
+    np.testing.assert_allclose(got, _threshold(raw, 0.5, 0.85), rtol=0, atol=1e-12)
+    other = "intensity" if density == "opacity" else "opacity"
+    swapped = np.asarray(vs.ObscuranceParams(**kwargs, density=other)(jnp.asarray(vol), tf))
+    assert np.abs(swapped - got).max() > 0.1
