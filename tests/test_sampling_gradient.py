@@ -2,6 +2,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from reference_gradient import regression_gradient_reference
 
 from volshade.gradient import regression_gradient, regression_kernel
 from volshade.sampling import trilinear
@@ -78,27 +79,6 @@ def test_regression_gradient_exact_on_linear_fields(size, weighting):
                                atol=1e-10)
 
 
-def reference_regression_gradient(vol, spacing, size, weighting):
-    """Neumann et al.'s fit written out: per voxel, the weighted least-squares plane
-    ``f(k) ~ g . x(k) + b`` over the edge-replicated ``size^3`` neighbourhood, by lstsq on
-    the full 4-parameter system (no use of its decoupling). The centre's weight is 0 for
-    "distance" and "inverse_distance" (x = 0 there: it only moves b, never g)."""
-    vol = np.asarray(vol, np.float64)
-    h = size // 2
-    offsets = np.stack(np.meshgrid(*[np.arange(-h, h + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    x = offsets * np.broadcast_to(np.asarray(spacing, np.float64), (3,))
-    r = np.linalg.norm(x, axis=1)
-    w = {"distance": r, "inverse_distance": np.where(r > 0, 1 / np.maximum(r, 1e-300), 0.0),
-         "uniform": np.ones_like(r)}[weighting]
-    design = np.sqrt(w)[:, None] * np.concatenate([x, np.ones((len(x), 1))], axis=1)
-    padded = np.pad(vol, h, mode="edge")
-    n = vol.shape
-    values = np.stack([padded[h + i:h + i + n[0], h + j:h + j + n[1], h + k:h + k + n[2]].ravel()
-                       for i, j, k in offsets])  # (K, voxels)
-    coef = np.linalg.lstsq(design, np.sqrt(w)[:, None] * values, rcond=None)[0]
-    return coef[:3].T.reshape(*n, 3)
-
-
 @pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (2.0, 1.0, 0.5)])
 @pytest.mark.parametrize("size", [3, 5])
 @pytest.mark.parametrize("weighting", ["distance", "inverse_distance", "uniform"])
@@ -108,10 +88,10 @@ def test_regression_gradient_matches_weighted_least_squares_on_random_field(weig
     vol = np.random.default_rng(3).random((9, 10, 8))
     g = np.asarray(regression_gradient(jnp.asarray(vol), spacing=spacing, size=size,
                                        weighting=weighting))
-    want = reference_regression_gradient(vol, spacing, size, weighting)
+    want = regression_gradient_reference(vol, spacing, size, weighting)
     np.testing.assert_allclose(g, want, rtol=1e-10, atol=1e-12)
     for other in {"distance", "inverse_distance", "uniform"} - {weighting}:
-        assert np.abs(reference_regression_gradient(vol, spacing, size, other) - want).max() > 1e-2
+        assert np.abs(regression_gradient_reference(vol, spacing, size, other) - want).max() > 1e-2
 
 
 def test_regression_gradient_against_central_differences_on_smooth_field():
