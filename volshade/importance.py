@@ -47,7 +47,11 @@ class Importance(eqx.Module):
 
     Every field is a differentiable scalar array leaf, so a fit never recompiles.
     The defaults (all measure weights 0) give $I_s = 0$ everywhere, for which
-    importance-aware compositing equals standard compositing.
+    importance-aware compositing equals standard compositing. Compositing depends
+    on importance differences only, and gaps of any size are handled stably; but the
+    products $W_{global} W_{measure} \cdot measure$ are formed in the render's dtype,
+    so in float32 weights whose product passes about $10^{38}$ (e.g. both $10^{30}$)
+    overflow to infinity and the image degrades without an error: use float64 there.
 
     Attributes:
         global_weight: $W_{global}$ (sec. IV-B); per-ray weights for focus plus
