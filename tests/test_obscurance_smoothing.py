@@ -37,7 +37,17 @@ def test_smoothing_blurs_the_density_before_the_search():
     assert float(jnp.max(jnp.abs(plain - params(vol, tf)))) > 0.05
 
 
-@pytest.mark.parametrize("bad", [-1.0, float("nan"), True, "1"])
-def test_smoothing_must_be_a_number_at_least_zero(bad):
-    with pytest.raises(ValueError, match="`smoothing` must be a number >= 0"):
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), True, "1"])
+def test_smoothing_must_be_a_finite_number_at_least_zero(bad):
+    with pytest.raises(ValueError, match="`smoothing` must be a finite number >= 0"):
         vs.ObscuranceParams(smoothing=bad)
+
+
+def test_smoothing_accepts_numpy_numbers_and_blurs_integer_volumes_as_floats():
+    for sigma in (np.float32(1.0), np.int64(1)):
+        assert vs.ObscuranceParams(smoothing=sigma).smoothing == 1.0
+    ints = jnp.arange(216, dtype=jnp.int32).reshape(6, 6, 6)
+    blurred = _gaussian_smooth(ints, 1.0)
+    assert jnp.issubdtype(blurred.dtype, jnp.floating)
+    np.testing.assert_allclose(blurred, _gaussian_smooth(ints.astype(blurred.dtype), 1.0))
+    assert float(jnp.max(blurred)) > 100

@@ -29,6 +29,7 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     modules = [vs.ObscuranceParams(d_max=4, low=0, high=1), vs.SaliencyModulation(d_max=4),
                vs.Phong(ambient=1, diffuse=1, specular=0, shininess=8),
                vs.Camera(eye=[0, 3, 0], target=[0, 0, 0], up=[1, 0, 0], fov=30, width=1),
+               vs.Focus(center=(0, 0), radius=1, inside=2, outside=0),
                vs.Scene(volume=VOL, transfer=TF, background=(0, 0, 0))]
     for module in modules:
         for leaf in jax.tree_util.tree_leaves(eqx.filter(module, eqx.is_array)):
@@ -45,14 +46,13 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
 
 @pytest.mark.parametrize("build, exc, match", [
     (lambda: vs.ObscuranceParams(d_max=-1.0), ValueError, "d_max"),
-    (lambda: vs.ObscuranceParams(d_max=[4.0, 8.0]), ValueError, "d_max` must be a scalar"),
     (lambda: vs.ObscuranceParams(low=0.9, high=0.1), ValueError, "`low` must be <= `high`"),
     (lambda: vs.ObscuranceParams(high=float("nan")), ValueError, "finite"),
     (lambda: vs.ObscuranceParams(color_bleeding="no"), TypeError, "color_bleeding"),
     (lambda: vs.SaliencyModulation(d_max=0.0), ValueError, "d_max"),
     (lambda: vs.SaliencyModulation(threshold=float("nan")), ValueError, "threshold"),
     (lambda: vs.SaliencyModulation(multiply="no"), TypeError, "multiply"),
-    (lambda: vs.Phong(diffuse=[1.0, 2.0]), ValueError, "diffuse` must be a scalar"),
+    (lambda: vs.Phong(diffuse=[1.0, -2.0]), ValueError, "diffuse` must be a finite number"),
     (lambda: vs.Phong(shininess=0.0), ValueError, "shininess` must be > 0"),
     (lambda: vs.Phong(specular=-1.0), ValueError, "specular"),
     (lambda: vs.LocalAmbientOcclusion(-1.0), ValueError, "radius` must be .* got -1.0"),
@@ -60,6 +60,26 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
 def test_parameter_modules_refuse_bad_values_at_construction(build, exc, match):
     with pytest.raises(exc, match=match):
         build()
+
+
+def test_modules_built_with_a_batch_axis_vmap():
+    # leaves may carry a batch axis (one Module for several settings, then vmap)
+    batched = vs.Phong(ambient=[0.2, 0.4], diffuse=[0.6, 0.6], specular=[0.2, 0.0],
+                       shininess=[8.0, 16.0])
+    scene = vs.Scene(volume=VOL, transfer=TF, shading="phong")
+    images = jax.vmap(lambda p: vs.render(eqx.tree_at(lambda s: s.phong, scene, p), CAM))(
+        batched)
+    for i in range(2):
+        one = vs.Phong(**{k: getattr(batched, k)[i] for k in
+                          ("ambient", "diffuse", "specular", "shininess")})
+        np.testing.assert_allclose(images[i], vs.render(eqx.tree_at(lambda s: s.phong, scene,
+                                                                    one), CAM), atol=1e-12)
+    params = vs.ObscuranceParams(d_max=[3.0, 5.0], low=[0.0, 0.1], high=[1.0, 0.9], level=0)
+    out = jax.vmap(lambda p: p(VOL, TF))(params)
+    np.testing.assert_allclose(out[1], vs.ObscuranceParams(d_max=5.0, low=0.1, high=0.9,
+                                                           level=0)(VOL, TF))
+    with pytest.raises(ValueError, match="`low` must be <= `high`"):
+        vs.ObscuranceParams(low=[0.0, 0.9], high=[1.0, 0.5])
 
 
 def test_parameter_modules_accept_traced_values():
@@ -87,6 +107,10 @@ def test_obscurance_input_errors_name_the_argument():
         vs.obscurance(DENSITY, directions=dirs, d_max=None)
     with pytest.raises(ValueError, match="`rho\\(d, d_max\\)` must return one value per"):
         vs.obscurance(DENSITY, directions=dirs, d_max=4.0, rho=lambda d, m: jnp.ones(3))
+    # a constant rho is a scalar: broadcast (occluded directions count 0.5, the others 1)
+    constant = vs.obscurance(DENSITY, directions=dirs, d_max=4.0, rho=lambda d, m: 0.5)
+    ao = vs.obscurance(DENSITY, directions=dirs, d_max=4.0, rho="ao")
+    np.testing.assert_allclose(constant, 0.5 + 0.5 * ao, atol=1e-6)
     with pytest.raises(ValueError, match="`ambient` .* needs `colors`"):
         vs.obscurance(DENSITY, directions=dirs, d_max=4.0, ambient=(1.0, 1.0, 1.0))
     with pytest.raises(TypeError, match="got the number 42.*icosphere_points"):
@@ -117,6 +141,8 @@ def test_saliency_errors_name_saliency_and_the_argument():
         jax.jit(lambda s: vs.saliency(DENSITY, spacing=s))(jnp.ones(3))
     with pytest.raises(ValueError, match="saliency.saliency: `size` .* pass the Python int 5"):
         vs.saliency(DENSITY, size=jnp.int32(5))
+    with pytest.raises(ValueError, match="got Array\\(3.7"):
+        vs.saliency(DENSITY, size=jnp.asarray(3.7))
     with pytest.raises(ValueError, match="saliency.saliency: `spacing`"):
         vs.saliency(DENSITY, spacing=(1.0, 2.0))
     with pytest.raises(ValueError, match="saliency.saliency: `obscurance` must not be empty"):

@@ -56,3 +56,15 @@ def test_half_precision_volumes_render_in_float32(dtype):
                               **parts), camera)
     assert image.dtype == jnp.float32
     np.testing.assert_array_equal(image, want)
+
+
+@pytest.mark.parametrize("name", ["phong + lao", "obscurance shading + colour bleeding",
+                                  "saliency modulation"])
+def test_half_precision_volumes_feed_every_effect(name):
+    # effects classify the volume themselves (LAO, obscurance, saliency): in float32 too
+    vol = VOL.astype(jnp.bfloat16)
+    scene = _cast(vs.Scene(volume=vol.astype(jnp.float32), transfer=TF, **SCENES[name]),
+                  jnp.float32)
+    image = vs.render(eqx.tree_at(lambda s: s.volume, scene, vol), _cast(CAM, jnp.float32))
+    assert image.dtype == jnp.float32
+    np.testing.assert_array_equal(image, vs.render(scene, _cast(CAM, jnp.float32)))

@@ -43,6 +43,14 @@ def float_leaf(x: Any) -> Array:
     return arr
 
 
+def at_least_float32(arr: Array) -> Array:
+    """Half-precision floats as float32 (their values convert exactly): interpolation,
+    classification and compositing are done in float32 at least."""
+    if jnp.issubdtype(arr.dtype, jnp.floating) and jnp.finfo(arr.dtype).bits < 32:
+        return arr.astype(jnp.float32)
+    return arr
+
+
 def flag(value: Any, name: str, where: str) -> bool:
     """A static on/off option: ``True`` or ``False`` only (a string such as ``"no"`` is
     truthy and would silently switch the option on)."""
@@ -52,7 +60,7 @@ def flag(value: Any, name: str, where: str) -> bool:
 
 
 def scalar(x: Any, name: str, where: str) -> Array:
-    """A floating scalar parameter (trace-time shape check)."""
+    """A floating scalar argument (trace-time shape check)."""
     arr = as_float_array(x, name, where)
     if arr.ndim != 0:
         raise ValueError(f"{where}: `{name}` must be a scalar, got shape {tuple(arr.shape)}; "

@@ -158,6 +158,10 @@ class Camera(eqx.Module):
         other keywords are :meth:`orbit`'s (``distance``, ``image_shape``, ...).
         Straight along ``±d`` the azimuth is undefined and taken as 0.
 
+        Raises:
+            ValueError: ``view`` not of shape ``(3,)``, or zero or not finite (when
+                traced: ``equinox.EquinoxRuntimeError`` at run time).
+
         Example:
             >>> cam = Camera.from_view(jnp.array([0.0, 1.0, 0.0]), image_shape=(8, 8))
             >>> [round(float(x), 6) + 0.0 for x in cam.eye]  # +h: azimuth 0, from the front
@@ -167,7 +171,7 @@ class Camera(eqx.Module):
             raise TypeError("volshade.Camera.from_view: the view sets azimuth and elevation; "
                             "use Camera.orbit to give them.")
         where = "volshade.Camera.from_view"
-        view = _checks.float_leaf(view)
+        view = _checks.at_least_float32(_checks.float_leaf(view))
         if view.shape != (3,):
             raise ValueError(f"{where}: `view` must be a (3,) direction, got shape "
                              f"{view.shape}.")

@@ -41,7 +41,7 @@ def _check_size(size, where: str) -> None:
     if isinstance(size, bool) or not isinstance(size, int | np.integer) or size not in (3, 5):
         got = (f"a {size.dtype} array; pass the Python int {int(size)}"
                if isinstance(size, np.ndarray | jax.Array) and size.ndim == 0
-               and int(size) in (3, 5) else repr(size))
+               and float(size) in (3.0, 5.0) else repr(size))
         raise ValueError(f"{where}: `size` must be the int 3 or 5 (neighbourhood edge), "
                          f"got {got}.")
 

@@ -440,11 +440,11 @@ class Focus(eqx.Module):
         inside, outside: global weights at the focus centre and far from it.
     """
 
-    center: Float[Array, "2"] = eqx.field(converter=jnp.asarray, default=(0.5, 0.5))
-    radius: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.25)
+    center: Float[Array, "2"] = eqx.field(converter=_checks.float_leaf, default=(0.5, 0.5))
+    radius: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.25)
     kind: str = eqx.field(static=True, default="gaussian")
-    inside: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
-    outside: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
+    inside: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=1.0)
+    outside: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.0)
 
     def __check_init__(self):
         _checks.option(self.kind, FOCUS_KINDS, "focus kind", "volshade.Focus")

@@ -64,6 +64,7 @@ References:
 
 import functools
 import math
+import numbers
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -397,17 +398,21 @@ def _gaussian_smooth(volume: Float[Array, "D H W"], sigma: float) -> Float[Array
         sigma: standard deviation in voxels (static, > 0); the kernel is truncated at
             ``4 sigma`` and normalised, and the edges are extended (``"nearest"``).
     """
+    volume = _checks.at_least_float32(_checks.as_float_array(volume, "volume",
+                                                              "volshade.ObscuranceParams"))
     radius = int(4.0 * sigma + 0.5)
     x = np.arange(-radius, radius + 1)
     kernel = np.exp(-0.5 * (x / sigma) ** 2)
-    kernel = jnp.asarray(kernel / kernel.sum(), volume.dtype)
+    kernel = jnp.asarray(kernel / kernel.sum(), volume.dtype)[None, None, :]
     for axis in range(3):
-        pad = [(0, 0)] * 3
-        pad[axis] = (radius, radius)
-        padded = jnp.pad(volume, pad, mode="edge")
-        n = volume.shape[axis]
-        volume = sum(kernel[k] * jax.lax.slice_in_dim(padded, k, k + n, axis=axis)
-                     for k in range(2 * radius + 1))
+        # one 1-D convolution along `axis`, over the edge-extended lines
+        lines = jnp.moveaxis(volume, axis, -1)
+        shape = lines.shape
+        padded = jnp.pad(lines.reshape(-1, 1, shape[-1]), ((0, 0), (0, 0), (radius, radius)),
+                         mode="edge")
+        out = jax.lax.conv_general_dilated(padded, kernel, (1,), "VALID",
+                                           precision=jax.lax.Precision.HIGHEST)
+        volume = jnp.moveaxis(out.reshape(shape), -1, axis)
     return volume
 
 
@@ -602,6 +607,8 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
             occluded = (steps > 0) & (dist <= d_max)
             safe_dist = jnp.where(occluded, dist, d_max)
             value = jnp.asarray(rho_fn(safe_dist, d_max), dtype)
+            if value.shape == ():  # a constant rho
+                value = jnp.broadcast_to(value, safe_dist.shape)
             if value.shape != safe_dist.shape:
                 raise ValueError(
                     f"volshade.obscurance.obscurance: `rho(d, d_max)` must return one value "
@@ -784,6 +791,14 @@ def _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess):
 _DENSITIES = ("opacity", "intensity")
 
 
+def _static_number(value):
+    """A real number as a Python float (a NumPy scalar as a static field would make
+    equinox warn, and compare by identity); anything else is left for the check."""
+    if isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_):
+        return float(value)
+    return value
+
+
 class ObscuranceParams(eqx.Module):
     """Obscurance settings for a :class:`volshade.Scene` (``ambient="obscurance"``).
 
@@ -812,23 +827,24 @@ class ObscuranceParams(eqx.Module):
     level: int = eqx.field(static=True, default=1)
     color_bleeding: bool = eqx.field(static=True, default=False)
     density: str = eqx.field(static=True, default="opacity")
-    smoothing: float = eqx.field(static=True, default=0.0)
+    smoothing: float = eqx.field(static=True, default=0.0, converter=_static_number)
 
     def __check_init__(self):
         where = "volshade.ObscuranceParams"
-        if (isinstance(self.smoothing, bool) or not isinstance(self.smoothing, int | float)
+        if (isinstance(self.smoothing, bool | np.bool_)
+                or not isinstance(self.smoothing, numbers.Real)
                 or not (math.isfinite(self.smoothing) and self.smoothing >= 0)):
-            raise ValueError(f"{where}: `smoothing` must be a number >= 0 (Gaussian sigma in "
-                             f"voxels, static), got {self.smoothing!r}.")
+            raise ValueError(f"{where}: `smoothing` must be a finite number >= 0 (Gaussian "
+                             f"sigma in voxels, static), got {self.smoothing!r}.")
         _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
         if self.density not in _DENSITIES:
             raise ValueError(f"{where}: unknown density {self.density!r}; valid values are "
                              f"{', '.join(map(repr, _DENSITIES))}.")
         _check_level(self.level, where)
         _checks.flag(self.color_bleeding, "color_bleeding", where)
-        d_max, low, high = (_checks.scalar(getattr(self, name), name, where)
-                            for name in ("d_max", "low", "high"))
-        # values are checked here when known; traced ones again where they are used
+        d_max, low, high = self.d_max, self.low, self.high
+        # values are checked here when known (built eagerly; leaves may carry a batch
+        # axis for vmap); traced ones where they are used
         _checks.refuse(d_max, [(~(jnp.isfinite(d_max) & (d_max > 0)),
                                 "`d_max` must be a finite distance > 0 (voxels).")],
                        where, traced=False)

@@ -100,9 +100,7 @@ def march(
             outside [0, 1] (raised when the data is seen).
     """
     where = "volshade.render"
-    volume = _checks.as_float_array(volume, "volume", where)
-    if jnp.finfo(volume.dtype).bits < 32:
-        volume = volume.astype(jnp.float32)
+    volume = _checks.at_least_float32(_checks.as_float_array(volume, "volume", where))
     _checks.check_ndim(volume, 3, "volume", where, "(D, H, W)")  # finite: with the transfer
     spacing = _checks.spacing(spacing, where)
     step = _checks.positive_float(step, "step", where)

@@ -91,7 +91,7 @@ def saliency(
 
     Raises:
         ValueError: wrong rank, empty, bad ``size``/``weighting``/``spacing``.
-        TypeError: a traced ``spacing`` (static: it sets the kernel).
+        TypeError: a traced ``spacing`` or ``size`` (static: they set the kernel).
         equinox.EquinoxRuntimeError: NaN or inf in ``obscurance`` (at run time).
 
     References:
@@ -481,9 +481,9 @@ class SaliencyModulation(eqx.Module):
         _check_size(self.size, where)
         _boost_top(self.boost_top, where)
         _checks.flag(self.multiply, "multiply", where)
-        threshold = _checks.scalar(self.threshold, "threshold", where)
-        d_max = _checks.scalar(self.d_max, "d_max", where)
-        # values are checked here when known; traced ones again where they are used
+        threshold, d_max = self.threshold, self.d_max
+        # values are checked here when known (built eagerly; leaves may carry a batch
+        # axis for vmap); traced ones where they are used
         _checks.refuse(threshold, [(~jnp.isfinite(threshold),
                                     "`threshold` must be a finite saliency level.")],
                        where, traced=False)

@@ -30,7 +30,8 @@ from .obscurance import _obscurance_shading
 
 
 class Phong(eqx.Module):
-    """Blinn--Phong coefficients; all are differentiable leaves.
+    """Blinn--Phong coefficients; all are differentiable leaves, finite and ``>= 0``
+    (``shininess > 0``), checked when the Module is built from known values.
 
     Attributes:
         ambient: $k_a$, weight of the ambient term.
@@ -46,9 +47,10 @@ class Phong(eqx.Module):
 
     def __check_init__(self):
         where = "volshade.Phong"
+        # values are checked here when known (built eagerly; leaves may carry a batch
+        # axis for vmap); traced ones only for finiteness, by the renderer
         for name in ("ambient", "diffuse", "specular", "shininess"):
-            value = _checks.scalar(getattr(self, name), name, where)
-            # values are checked here when known (traced ones: finiteness at render)
+            value = getattr(self, name)
             _checks.refuse(value, [(~(jnp.isfinite(value) & (value >= 0)),
                                     f"`{name}` must be a finite number >= 0.")],
                            where, traced=False)

@@ -84,9 +84,10 @@ class TransferFunction(eqx.Module):
 
     def _checked(self, volume, where: str) -> tuple["TransferFunction", Array]:
         """This function and ``volume``, checked for use: the control values (which a fit
-        or ``eqx.tree_at`` may have set), and ``volume`` finite and within the points."""
+        or ``eqx.tree_at`` may have set), and ``volume`` finite and within the points
+        (half precision as float32: ``jnp.interp`` refuses it)."""
         tf = _checks.refuse(self, self._problems(), _WHERE)
-        volume = _checks.finite(jnp.asarray(volume), "volume", where)
+        volume = _checks.finite(_checks.at_least_float32(jnp.asarray(volume)), "volume", where)
         outside = (jnp.min(volume) < tf.points[0]) | (jnp.max(volume) > tf.points[-1])
         # interpolation would classify all those values like the end points (a 0-255
         # volume through a [0, 1] transfer function renders as one solid blob)
