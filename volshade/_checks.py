@@ -115,17 +115,19 @@ _OPACITY_HINT = ("(opacities); map it through a transfer function or `jnp.clip` 
 def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
            hint: str = _OPACITY_HINT) -> Array:
     """``arr``, refused at run time when it holds NaN or inf, or (``unit_range``) values
-    outside [0, 1]; ``hint`` follows "must lie in [0, 1]" in that message."""
+    outside [0, 1] (:func:`in_unit_range`)."""
     arr = eqx.error_if(
         arr, ~jnp.all(jnp.isfinite(arr)),
         f"{where}: `{name}` contains NaN or inf; clean the data (e.g. `jnp.nan_to_num`) first.",
     )
-    if unit_range:
-        arr = eqx.error_if(
-            arr, jnp.any((arr < 0) | (arr > 1)),
-            f"{where}: `{name}` must lie in [0, 1] {hint}.",
-        )
-    return arr
+    return in_unit_range(arr, name, where, hint=hint) if unit_range else arr
+
+
+def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT) -> Array:
+    """``arr``, refused at run time when it holds values outside [0, 1] (NaN passes:
+    :func:`finite` refuses it); ``hint`` follows "must lie in [0, 1]"."""
+    return eqx.error_if(arr, jnp.any((arr < 0) | (arr > 1)),
+                        f"{where}: `{name}` must lie in [0, 1] {hint}.")
 
 
 def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:

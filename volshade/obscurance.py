@@ -384,8 +384,13 @@ def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
     if arr.ndim != 0:
         raise ValueError(f"{where}: `d_max` must be a scalar (voxels), got shape {arr.shape}; "
                          f"for several values use `jax.vmap`.")
-    return _checks.refuse(arr, [(~(jnp.isfinite(arr) & (arr > 0)),
-                                 "`d_max` must be a finite distance > 0 (voxels).")], where)
+    return _checks.refuse(arr, _d_max_problems(arr), where)
+
+
+def _d_max_problems(d_max: Array) -> list[tuple[Array, str]]:
+    """The checks on ``d_max`` for :func:`volshade._checks.refuse`."""
+    return [(~(jnp.isfinite(d_max) & (d_max > 0)),
+             "`d_max` must be a finite distance > 0 (voxels).")]
 
 
 def _gaussian_smooth(volume: Float[Array, "D H W"], sigma: float) -> Float[Array, "D H W"]:
@@ -570,15 +575,14 @@ def obscurance(
         if colors.shape != (*density.shape, 3):
             raise ValueError(f"{where}: `colors` must have shape {(*density.shape, 3)} "
                              f"(D, H, W, RGB) to match `density`, got {colors.shape}.")
-        colors = _checks.finite(colors, "colors", where, unit_range=True,
-                                   hint="(RGB reflectances); rescale it")
+        reflectances = "(RGB reflectances); rescale it"
+        colors = _checks.finite(colors, "colors", where, unit_range=True, hint=reflectances)
         ambient = (1.0, 1.0, 1.0) if ambient is None else ambient
         ambient = _checks.as_float_array(ambient, "ambient", where).astype(dtype)
         if ambient.shape != (3,):
             raise ValueError(f"{where}: `ambient` must be an RGB triple, shape (3,), got "
                              f"{ambient.shape}.")
-        ambient = _checks.finite(ambient, "ambient", where, unit_range=True,
-                                   hint="(RGB reflectances); rescale it")
+        ambient = _checks.finite(ambient, "ambient", where, unit_range=True, hint=reflectances)
     elif ambient is not None:
         raise ValueError(f"{where}: `ambient` is the colour of unoccluded directions for "
                          f"colour bleeding and needs `colors`; pass `colors` or drop it.")
@@ -831,9 +835,8 @@ class ObscuranceParams(eqx.Module):
 
     def __check_init__(self):
         where = "volshade.ObscuranceParams"
-        if (isinstance(self.smoothing, bool | np.bool_)
-                or not isinstance(self.smoothing, numbers.Real)
-                or not (math.isfinite(self.smoothing) and self.smoothing >= 0)):
+        if not (isinstance(self.smoothing, float) and math.isfinite(self.smoothing)
+                and self.smoothing >= 0):
             raise ValueError(f"{where}: `smoothing` must be a finite number >= 0 (Gaussian "
                              f"sigma in voxels, static), got {self.smoothing!r}.")
         _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
@@ -845,9 +848,7 @@ class ObscuranceParams(eqx.Module):
         d_max, low, high = self.d_max, self.low, self.high
         # values are checked here when known (built eagerly; leaves may carry a batch
         # axis for vmap); traced ones where they are used
-        _checks.refuse(d_max, [(~(jnp.isfinite(d_max) & (d_max > 0)),
-                                "`d_max` must be a finite distance > 0 (voxels).")],
-                       where, traced=False)
+        _checks.refuse(d_max, _d_max_problems(d_max), where, traced=False)
         _checks.refuse(low, [(~(jnp.isfinite(low) & jnp.isfinite(high)),
                               "`low` and `high` must be finite."),
                              (low > high, "`low` must be <= `high`.")], where, traced=False)

@@ -42,6 +42,7 @@ from .directions import _check_level, icosphere_points
 from .gradient import _WEIGHTS, _check_size, gradient_magnitude, regression_gradient
 from .obscurance import (
     RHO_FUNCTIONS,
+    _d_max_problems,
     _direction_array,
     _line_groups,
     _shear,
@@ -261,15 +262,21 @@ def viewpoint_saliency(
         >>> [float(x) for x in s]
         [1.0, 0.0]
     """
-    where = "volshade.saliency.viewpoint_saliency"
+    return _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area,
+                               "volshade.saliency.viewpoint_saliency")[0]
+
+
+def _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area, where):
+    """:func:`viewpoint_saliency` with errors naming ``where``; also returns the
+    normalised ``(V, 3)`` viewpoints as NumPy."""
     _checks.option(visibility, _VISIBILITY, "visibility", where)
     saliency, opacity = _check_pair(saliency, opacity, where)
-    dirs = _static_dirs(_direction_array(viewpoints, "viewpoints", where))
-    total = _viewpoint_sums(saliency, opacity, dirs=dirs, visibility=visibility,
+    dirs = _direction_array(viewpoints, "viewpoints", where)
+    total = _viewpoint_sums(saliency, opacity, dirs=_static_dirs(dirs), visibility=visibility,
                             sequential=_sequential_products())
     if per_area:
         total = safe_div(total, projected_area(opacity, viewpoints))
-    return total
+    return total, dirs
 
 
 def projected_area(
@@ -313,13 +320,9 @@ def projected_area(
 
 
 def _select(saliency, opacity, viewpoints, per_area, visibility, pick, where):
-    _check_pair(saliency, opacity, where)  # so that errors name the function called
-    _checks.option(visibility, _VISIBILITY, "visibility", where)
-    _direction_array(viewpoints, "viewpoints", where)
-    values = viewpoint_saliency(saliency, opacity, viewpoints, visibility=visibility,
-                                per_area=per_area)
-    dirs = jnp.asarray(_direction_array(viewpoints, "viewpoints", where), values.dtype)
-    return dirs[pick(values)]
+    values, dirs = _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area,
+                                       where)
+    return jnp.asarray(dirs, values.dtype)[pick(values)]
 
 
 def most_salient_view(
@@ -487,9 +490,7 @@ class SaliencyModulation(eqx.Module):
         _checks.refuse(threshold, [(~jnp.isfinite(threshold),
                                     "`threshold` must be a finite saliency level.")],
                        where, traced=False)
-        _checks.refuse(d_max, [(~(jnp.isfinite(d_max) & (d_max > 0)),
-                                "`d_max` must be a finite distance > 0 (voxels).")],
-                       where, traced=False)
+        _checks.refuse(d_max, _d_max_problems(d_max), where, traced=False)
 
     def __call__(self, volume: Float[Array, "D H W"], transfer,
                  spacing: float | tuple[float, float, float] = 1.0) -> Float[Array, "D H W"]:

@@ -37,10 +37,10 @@ def _nothing(scene: "Scene") -> None:
 
 
 def _volume_ambient(scene: "Scene") -> Array:
-    return eqx.error_if(scene.ambient_volume,
-                        ~jnp.all((scene.ambient_volume >= 0) & (scene.ambient_volume <= 1)),
-                        "volshade.render: `scene.ambient_volume` must lie in [0, 1] (an "
-                        "ambient factor); rescale it, e.g. divide by its maximum.")
+    # (its finiteness is checked with every other scene leaf)
+    return _checks.in_unit_range(scene.ambient_volume, "scene.ambient_volume", "volshade.render",
+                                 hint="(an ambient factor); rescale it, e.g. divide by its "
+                                      "maximum")
 
 
 def _lao_ambient(scene: "Scene") -> Array:
