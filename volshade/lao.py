@@ -55,6 +55,11 @@ as memory-hungry on an H200, so it was not kept.) Forward mode (``jax.jvp``) is 
 available through the custom VJP (optimistix least-squares solvers then need
 ``options=dict(jac="bwd")``); ``directions`` are not differentiated.
 
+**On a GPU** ``implementation="pallas"`` runs the same march, values and
+gradients, as Pallas (Triton) kernels in which one program marches all rays of a
+tile of voxels in registers (``volshade._lao_pallas``); it is opt-in until it has
+been timed on a GPU (``python -m benchmarks.run gpu``).
+
 **Bricks** (``brick_size``): bricks with no opacity within reach get AO = 1 and
 are not marched; the active ones are compacted and marched in groups, ``vmap``-ped
 over their padded windows. When more than half are active the plain march is
@@ -128,6 +133,22 @@ def _trilinear_shifted(source, pad, shape, offset) -> Array:
     return value
 
 
+def _corner_slopes(frac, direction) -> list:
+    """``d w_c(f + s l) / ds`` at ``s = 0`` for the eight corners (in ``_CORNERS``
+    order): the derivative of each trilinear weight along the ray ``direction``."""
+    out = []
+    for corner in _CORNERS:
+        slope = None
+        for ax in range(3):
+            term = direction[ax] if corner[ax] else -direction[ax]
+            for bx in range(3):
+                if bx != ax:
+                    term = term * (frac[bx] if corner[bx] else 1 - frac[bx])
+            slope = term if slope is None else slope + term
+        out.append(slope)
+    return out
+
+
 def _trilinear_shifted_with_slope(source, pad, shape, offset, direction):
     """Value and its derivative along ``direction`` (``d/ds alpha(x + offset + s l)``).
 
@@ -135,14 +156,8 @@ def _trilinear_shifted_with_slope(source, pad, shape, offset, direction):
     """
     frac, _, slices = _corner_slices(source, pad, shape, offset)
     value = slope = None
-    for corner, weight in _corner_weights(frac):
-        d_weight = None
-        for ax in range(3):
-            term = direction[ax] if corner[ax] else -direction[ax]
-            for bx in range(3):
-                if bx != ax:
-                    term = term * (frac[bx] if corner[bx] else 1 - frac[bx])
-            d_weight = term if d_weight is None else d_weight + term
+    for (corner, weight), d_weight in zip(_corner_weights(frac),
+                                          _corner_slopes(frac, direction), strict=True):
         v, d = weight * slices[corner], d_weight * slices[corner]
         value = v if value is None else value + v
         slope = d if slope is None else slope + d
@@ -375,6 +390,7 @@ def _brick_group(brick: int, window: tuple[int, int, int], n_bricks: int) -> int
 
 
 _MAX_ACTIVE_FRACTION = 0.5
+_IMPLEMENTATIONS = ("xla", "pallas")
 
 
 def _active_bricks(alpha, pad, brick) -> Array:
@@ -557,6 +573,7 @@ def lao(
     opacity_correction: bool = False,
     brick_size: int | None = None,
     max_radius: float | None = None,
+    implementation: str = "xla",
 ) -> Volume:
     r"""Local ambient occlusion of an opacity volume, by gather-free ray marching.
 
@@ -601,6 +618,14 @@ def lao(
             27 volumes or more; pass ``max_radius`` when fitting the radius).
             Eager calls with a new concrete ``radius`` and no ``max_radius``
             recompile, since the padding follows the radius.
+        implementation: ``"xla"`` (the default) marches with fused shifted reads
+            (see the module docstring); ``"pallas"`` uses Pallas kernels that march
+            every ray of a tile of voxels in registers, forward and in reverse mode
+            (``volshade._lao_pallas``), compiled by Triton on a GPU and run in
+            Pallas' interpreter elsewhere (exact but slow: for tests). Both compute
+            the same values and gradients (to rounding). ``"pallas"`` has not yet
+            been timed on a GPU, hence not the default; it does not combine with
+            ``brick_size``.
 
     Returns:
         ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``alpha``.
@@ -608,7 +633,8 @@ def lao(
     Raises:
         ValueError: ``alpha`` not 3-D, bad ``directions``/``weights`` shape, empty
             direction set, ``samples < 1``, ``brick_size < 1``, ``radius <= offset``
-            or ``offset < 0`` (at trace time when they are numbers).
+            or ``offset < 0`` (at trace time when they are numbers), an unknown
+            ``implementation`` or ``"pallas"`` with ``brick_size``.
         TypeError: non-numeric inputs.
         equinox.EquinoxRuntimeError: at run time for traced values: ``alpha``
             outside ``[0, 1]`` or non-finite, ``radius <= offset``, ``offset < 0``,
@@ -637,6 +663,12 @@ def lao(
         brick_size = _checks.positive_int(brick_size, "brick_size", _WHERE)
     if max_radius is not None:
         max_radius = _checks.positive_float(max_radius, "max_radius", _WHERE)
+    if implementation not in _IMPLEMENTATIONS:
+        raise ValueError(f"{_WHERE}: `implementation` must be one of {_IMPLEMENTATIONS}, "
+                         f"got {implementation!r}.")
+    if implementation == "pallas" and brick_size is not None:
+        raise ValueError(f"{_WHERE}: `brick_size` applies to the XLA march only; with "
+                         f"`implementation='pallas'` pass `brick_size=None`.")
     dirs = lax.stop_gradient(_directions_array(directions, dtype))
     n_dirs = dirs.shape[0]
 
@@ -686,13 +718,24 @@ def lao(
 
     return _lao(alpha, dirs, weights, radius, offset, pad=pad, samples=samples,
                 correction=opacity_correction, brick_size=brick_size,
-                max_active=_MAX_ACTIVE_FRACTION)
+                max_active=_MAX_ACTIVE_FRACTION, implementation=implementation)
 
 
 @eqx.filter_jit
 def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, brick_size,
-         max_active):
+         max_active, implementation):
     """The validated computation, compiled once per shape and static options."""
+    if implementation == "pallas":
+        if samples == 1:
+            return jnp.ones_like(alpha)
+        # imported here: Pallas is loaded only by those who ask for it
+        from . import _lao_pallas
+
+        total = _lao_pallas.occlusion_sum(pad, samples, correction, _lao_pallas.Launch(),
+                                          jax.default_backend() != "gpu", alpha, dirs,
+                                          weights, radius, offset)
+        return 1 - total / samples
+
     def march(source, shape):
         return _march(source, pad, shape, dirs, weights, radius, offset, samples, correction)
 
@@ -739,11 +782,13 @@ class LocalAmbientOcclusion(eqx.Module):
     opacity_correction: bool = eqx.field(static=True)
     brick_size: int | None = eqx.field(static=True)
     max_radius: float | None = eqx.field(static=True)
+    implementation: str = eqx.field(static=True)
 
     def __init__(self, radius: ArrayLike = 16.0, *, offset: ArrayLike = 1.0,
                  directions: ArrayLike | int = 42, samples: int = 16,
                  weights: ArrayLike | None = None, opacity_correction: bool = False,
-                 brick_size: int | None = None, max_radius: float | None = None):
+                 brick_size: int | None = None, max_radius: float | None = None,
+                 implementation: str = "xla"):
         where = "volshade.LocalAmbientOcclusion"
         self.radius = jnp.asarray(radius, dtype=float)
         self.offset = jnp.asarray(offset, dtype=float)
@@ -762,10 +807,14 @@ class LocalAmbientOcclusion(eqx.Module):
         if max_radius is None and not isinstance(radius, jax.core.Tracer):
             max_radius = 2 * float(np.max(np.asarray(radius)))
         self.max_radius = max_radius
+        if implementation not in _IMPLEMENTATIONS:
+            raise ValueError(f"{where}: `implementation` must be one of {_IMPLEMENTATIONS}, "
+                             f"got {implementation!r}.")
+        self.implementation = implementation
 
     def __call__(self, alpha: Volume) -> Volume:
         """AO of ``alpha``: :func:`lao` with these parameters."""
         return lao(alpha, directions=self.directions, radius=self.radius, offset=self.offset,
                    samples=self.samples, weights=self.weights,
                    opacity_correction=self.opacity_correction, brick_size=self.brick_size,
-                   max_radius=self.max_radius)
+                   max_radius=self.max_radius, implementation=self.implementation)

@@ -1,0 +1,196 @@
+"""Tests of ``lao(..., implementation="pallas")``: the Pallas kernels (run here in
+Pallas' interpreter) against the XLA march and the gather reference, in values and
+in every gradient; jit, vmap and grad; hard cases; and that the kernels lower to
+Triton for a GPU (checked on the CPU by exporting for CUDA)."""
+
+import sys
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import central_difference
+from jax import export
+from reference_lao import lao_reference
+
+import volshade.directions as vdirs
+from volshade.lao import LocalAmbientOcclusion, lao
+
+pallas = pytest.importorskip("volshade._lao_pallas")
+lao_module = sys.modules["volshade.lao"]
+
+
+def _alpha(shape, seed, dtype=jnp.float64):
+    return jnp.asarray(np.random.default_rng(seed).uniform(0, 1, shape) ** 2, dtype)
+
+
+CASES = [
+    # shape, directions, radius, offset, samples, correction, weights, max_radius
+    ((9, 12, 7), vdirs.fibonacci(5), 4.6, 0.7, 7, False, False, 5.0),
+    ((8, 8, 8), vdirs.icosphere(0), 3.9, 0.0, 5, True, True, 4.0),
+    # a traced radius and no max_radius: the padding is the whole extent and shifts clamp
+    ((7, 10, 6), vdirs.fibonacci(4), 9.0, 1.5, 4, True, False, None),
+]
+
+
+def _call(case, implementation, alpha, radius, offset, weights):
+    _, dirs, _, _, samples, corr, _, max_radius = CASES[case]
+    return lao(alpha, directions=dirs, radius=radius, offset=offset, samples=samples,
+               weights=weights, opacity_correction=corr, max_radius=max_radius,
+               implementation=implementation)
+
+
+def _inputs(case, dtype=jnp.float64):
+    shape, dirs, radius, offset, _, _, weighted, _ = CASES[case]
+    weights = None
+    if weighted:
+        weights = jnp.asarray(np.random.default_rng(case).uniform(0.2, 2.0, dirs.shape[0]),
+                              dtype)
+    return _alpha(shape, case, dtype), jnp.asarray(radius, dtype), jnp.asarray(offset, dtype), \
+        weights
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_values_match_xla_march_and_gather_reference(case):
+    alpha, radius, offset, weights = _inputs(case)
+    _, dirs, _, _, samples, corr, _, _ = CASES[case]
+    fn = jax.jit(lambda a, r, o: _call(case, "pallas", a, r, o, weights))
+    out = fn(alpha, radius, offset)
+    np.testing.assert_allclose(out, _call(case, "xla", alpha, radius, offset, weights),
+                               rtol=0, atol=1e-13)
+    ref = lao_reference(alpha, dirs, radius, offset, samples, weights=weights,
+                        opacity_correction=corr)
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12)
+
+
+def test_float32_matches_gather_reference():
+    alpha, radius, offset, _ = _inputs(0, jnp.float32)
+    dirs = vdirs.fibonacci(5)
+    out = lao(alpha, directions=dirs, radius=radius, offset=offset, samples=7,
+              implementation="pallas")
+    assert out.dtype == jnp.float32
+    ref = lao_reference(alpha, dirs, radius, offset, 7)
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("case", [0, 1])
+def test_gradients_match_xla_march(case):
+    """Every cotangent (opacity, radius, offset, weights) of the Pallas VJP equals the
+    XLA VJP's, which test_lao checks against finite differences."""
+    alpha, radius, offset, weights = _inputs(case)
+    if weights is None:
+        weights = jnp.full((CASES[case][1].shape[0],), 1.0)
+    alpha = alpha.at[3, 4, 2].set(1.0)  # an opaque voxel: S, not division, carries it
+    ct = jnp.asarray(np.random.default_rng(7).normal(size=alpha.shape))
+
+    def loss(implementation):
+        return lambda *args: jnp.sum(ct * _call(case, implementation, *args))
+
+    got = jax.grad(loss("pallas"), argnums=(0, 1, 2, 3))(alpha, radius, offset, weights)
+    want = jax.grad(loss("xla"), argnums=(0, 1, 2, 3))(alpha, radius, offset, weights)
+    for g, w in zip(got, want, strict=True):
+        assert np.all(np.isfinite(g))
+        np.testing.assert_allclose(g, w, rtol=1e-11, atol=1e-11)
+
+
+def test_radius_and_opacity_gradients_match_finite_differences():
+    alpha, radius, offset, _ = _inputs(0)
+    ct = jnp.asarray(np.random.default_rng(3).normal(size=alpha.shape))
+
+    def of_radius(r):
+        return jnp.sum(ct * _call(0, "pallas", alpha, r, offset, None))
+
+    fd = central_difference(of_radius, radius, 1.0)
+    np.testing.assert_allclose(jax.grad(of_radius)(radius), fd, rtol=1e-4)
+
+    def of_alpha(a):
+        return jnp.sum(ct * _call(0, "pallas", a, radius, offset, None))
+
+    direction = jnp.zeros_like(alpha).at[4, 6, 3].set(1.0).at[5, 5, 4].set(-0.5)
+    fd = central_difference(of_alpha, alpha, direction)
+    np.testing.assert_allclose(jnp.vdot(jax.grad(of_alpha)(alpha), direction), fd, rtol=1e-4)
+
+
+def test_vmap_over_volumes_and_radii():
+    alphas = jnp.stack([_alpha((6, 9, 8), seed) for seed in range(3)])
+    radii = jnp.asarray([2.0, 3.0, 4.5])
+
+    def f(implementation):
+        return lambda a, r: lao(a, directions=6, radius=r, samples=5, max_radius=5.0,
+                                implementation=implementation)
+
+    got = jax.vmap(f("pallas"))(alphas, radii)
+    np.testing.assert_allclose(got, jax.vmap(f("xla"))(alphas, radii), rtol=0, atol=1e-13)
+    assert not np.allclose(got[0], got[1])
+
+    def loss(implementation):
+        return jax.vmap(jax.grad(lambda a, r: jnp.sum(f(implementation)(a, r) ** 2),
+                                 argnums=(0, 1)))
+
+    for g, w in zip(loss("pallas")(alphas, radii), loss("xla")(alphas, radii), strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-11, atol=1e-12)
+
+
+def test_module_and_filter_grad():
+    alpha = _alpha((8, 8, 8), 4)
+    kw = dict(directions=6, samples=5, opacity_correction=True)
+    grads = [eqx.filter_grad(lambda m: jnp.sum(m(alpha)))(
+        LocalAmbientOcclusion(3.0, implementation=impl, **kw)) for impl in ("pallas", "xla")]
+    np.testing.assert_allclose(grads[0].radius, grads[1].radius, rtol=1e-12)
+    np.testing.assert_allclose(grads[0].offset, grads[1].offset, rtol=1e-12)
+
+
+def test_hard_cases():
+    dirs = vdirs.icosphere(0)
+    kw = dict(directions=dirs, radius=3.0, samples=6, implementation="pallas")
+    # empty volume: exactly 1, and samples = 1 takes no sample at all
+    assert np.all(lao(jnp.zeros((5, 6, 7)), **kw) == 1)
+    assert np.all(lao(_alpha((5, 6, 7), 1), **{**kw, "samples": 1}) == 1)
+    # one voxel, fully opaque: rays start inside it
+    one = lao(jnp.ones((1, 1, 1)), directions=dirs, radius=3.0, offset=0.0, samples=6,
+              implementation="pallas")
+    np.testing.assert_allclose(one, lao_reference(jnp.ones((1, 1, 1)), dirs, 3.0, 0.0, 6))
+    # opaque everywhere, with opacity correction: gradients stay finite
+    g = jax.grad(lambda a: jnp.sum(lao(a, opacity_correction=True, **kw)))(jnp.ones((6, 6, 6)))
+    assert np.all(np.isfinite(g))
+
+
+def test_bad_input():
+    alpha = jnp.zeros((6, 6, 6))
+    with pytest.raises(ValueError, match="implementation"):
+        lao(alpha, directions=6, radius=2.0, implementation="cuda")
+    with pytest.raises(ValueError, match="brick_size"):
+        lao(alpha, directions=6, radius=2.0, implementation="pallas", brick_size=4)
+    with pytest.raises(ValueError, match="implementation"):
+        LocalAmbientOcclusion(2.0, implementation="triton")
+    with pytest.raises(ValueError, match="Triton's 32-bit indexing"):
+        pallas._check_size(2**31)
+
+
+def _export_for_cuda(fn, *shapes):
+    exported = export.export(
+        jax.jit(fn), platforms=["cuda"],
+        disabled_checks=[export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")],
+    )(*[jax.ShapeDtypeStruct(s, jnp.float32) for s in shapes])
+    return exported.mlir_module()
+
+
+@pytest.mark.parametrize("launch", pallas.LAUNCHES)
+def test_kernels_lower_to_triton(launch):
+    """The four kernels (forward; chunk starts, cotangents and adjoint of the VJP)
+    lower to Triton for every launch the GPU benchmark times, vmapped too. Triton's
+    own compilation to PTX happens only on a GPU (``benchmarks/gpu.py``)."""
+    dirs = vdirs.fibonacci(6).astype(jnp.float32)
+
+    def value_and_grad(alpha, radius):
+        def total(a, r):
+            return jnp.sum(1 - pallas.occlusion_sum(
+                (9, 9, 9), 9, True, launch, False, a, dirs, jnp.full((6,), 1 / 6, jnp.float32),
+                r, jnp.float32(1.0)))
+        return jax.value_and_grad(total, argnums=(0, 1))(alpha, radius)
+
+    text = _export_for_cuda(value_and_grad, (20, 24, 40), ())
+    assert text.count("__gpu$xla.gpu.triton") == 4
+    text = _export_for_cuda(jax.vmap(value_and_grad), (2, 20, 24, 40), (2,))
+    assert text.count("__gpu$xla.gpu.triton") == 4

@@ -1,0 +1,385 @@
+r"""The LAO march as Pallas kernels (Triton on a GPU), forward and reverse mode.
+
+This computes exactly what :func:`volshade.lao._occlusion_sum` computes, the
+occlusion sum $\sum_l \hat w_l\, occ_l$ with $occ_l = M (1 - I_l)$ (Ancel et al.
+2010, section 3, eq. 3-4), for ``lao(..., implementation="pallas")``. The XLA
+version reads eight shifted copies of the padded volume per sample and relies on
+XLA to fuse each chunk of samples into one pass. Here one program owns a tile of
+voxels and marches all $L$ rays and $M$ samples over it in registers: the
+volume is read only through the eight corner loads of each sample, which hit the
+cache (neighbouring tiles and samples read overlapping windows), and the output
+is written once. The sample offset $s_i l$ is the same for every voxel of the
+tile, so its floor and the eight trilinear weights are scalars.
+
+Reverse mode keeps the recompute-instead-of-store scheme of the XLA VJP, one
+direction at a time, in three kernels:
+
+1. ``_chunk_starts``: march forward, store the transmittance $T$ at the start of
+   every chunk of about $\sqrt{M}$ samples ($\sqrt M$ volumes), and $occ_l$
+   (for the weight's cotangent).
+2. ``_chunk_cotangents`` (chunks in reverse): reload the chunk's samples and
+   their slopes along the ray, rebuild $T_i$ from the stored start, sweep back
+   with the suffix sums $S_i$ and write $g_i = \bar o\, \hat w_l\, v_i T_i S_i$
+   (through the opacity correction) for each sample of the chunk; accumulate
+   the radius and offset terms $g_i\, \partial\alpha_i/\partial s\, \partial s_i/
+   \partial(R, a)$ per voxel.
+3. ``_chunk_adjoint``: the adjoint of a shifted read is the opposite shift, so
+   $\bar\alpha(z) \mathrel{+}= \sum_i \sum_c w_c(i)\, g_i(z - n_i - c)$ is a
+   gather-free stencil too. The $g_i$ live in a buffer with a zero halo as wide
+   as the padding, so no read leaves it (the Triton lowering would allow masked
+   reads, but Pallas' interpreter, which the CPU tests use, does not emulate
+   partly out-of-bounds windows).
+
+Memory in reverse mode: about $2\sqrt{M} + 6$ volumes (the chunk starts, the
+halo'd $g$ buffer of one chunk, and the carried $S$, cotangent and accumulators),
+for any $L$.
+
+On a CPU the kernels run in Pallas' interpreter (exact, slow): that is how the
+test suite checks them against the XLA path. Tile shapes are powers of two (a
+Triton requirement); the volume is padded up to whole tiles and cropped.
+"""
+
+import functools
+import math
+from typing import NamedTuple
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jax.experimental import pallas as pl
+
+from ._numerics import correct_opacity
+from .lao import _CORNERS, _chunking, _corner_slopes, _corner_weights
+
+
+class Launch(NamedTuple):
+    """How the kernels are launched: the tile ``(d, h, w)`` of voxels one program
+    marches (powers of two) and the Triton ``num_warps`` per program."""
+
+    tile: tuple[int, int, int] = (2, 8, 32)
+    num_warps: int = 4
+
+
+#: The default launch is not yet tuned on a GPU; ``benchmarks/gpu.py`` times these.
+LAUNCHES = (Launch(), Launch((4, 8, 32), 4), Launch((4, 8, 32), 8), Launch((1, 8, 64), 4),
+            Launch((2, 4, 32), 2), Launch((4, 16, 32), 8))
+
+# Triton indexes with 32-bit integers
+_MAX_ELEMENTS = 2**31 - 1
+
+
+def _tiling(shape, tile):
+    """The tile actually used (no larger than the volume's power-of-two cover), the
+    grid, and the tile-aligned output shape."""
+    tile = tuple(min(t, pl.next_power_of_2(s)) for t, s in zip(tile, shape, strict=True))
+    grid = tuple(-(-s // t) for s, t in zip(shape, tile, strict=True))
+    return tile, grid, tuple(g * t for g, t in zip(grid, tile, strict=True))
+
+
+def _compiler_params(launch: Launch, interpret: bool) -> dict:
+    if interpret:
+        return {"interpret": True}
+    from jax.experimental.pallas import triton as pltriton
+
+    return {"compiler_params": pltriton.CompilerParams(num_warps=launch.num_warps,
+                                                       num_stages=1)}
+
+
+def _pack(*values, dtype):
+    """Scalars and small arrays as one flat vector, padded to a power of two (Triton
+    loads must be)."""
+    flat = jnp.concatenate([jnp.ravel(jnp.asarray(v, dtype)) for v in values])
+    return jnp.pad(flat, (0, pl.next_power_of_2(flat.shape[0]) - flat.shape[0]))
+
+
+def _position(radius, offset, samples, index, direction):
+    """Segment-midpoint distance $s_i = a + (i + 1/2)(R - a)/M$ and ``floor``/``frac``
+    of $s_i l$ (voxels)."""
+    step = (radius - offset) / samples
+    distance = offset + (index.astype(step.dtype) + 0.5) * step
+    position = [distance * direction[ax] for ax in range(3)]
+    floor = [jnp.floor(p) for p in position]
+    return step, [p - f for p, f in zip(position, floor, strict=True)], \
+        [f.astype(jnp.int32) for f in floor]
+
+
+def _windows(ref, origin, pad, tile, shift):
+    """The eight tile-sized windows ``source[origin + clip(pad + n + c, 0, 2 pad)]``.
+
+    The clip mirrors :func:`volshade.lao._corner_slices`: it binds only when the
+    padding is the whole extent, and then the window lies in the zero padding.
+    """
+    out = []
+    for corner in _CORNERS:
+        start = [origin[ax] + jnp.clip(pad[ax] + shift[ax] + corner[ax], 0, 2 * pad[ax])
+                 for ax in range(3)]
+        out.append(ref[pl.ds(start[0], tile[0]), pl.ds(start[1], tile[1]),
+                       pl.ds(start[2], tile[2])])
+    return out
+
+
+def _blend(weights, windows):
+    value = None
+    for w, v in zip(weights, windows, strict=True):
+        value = w * v if value is None else value + w * v
+    return value
+
+
+def _weights(frac) -> list:
+    return [weight for _, weight in _corner_weights(frac)]
+
+
+def _origin(tile):
+    return [pl.program_id(ax) * tile[ax] for ax in range(3)]
+
+
+def _opacity(value, step, correction):
+    return correct_opacity(value, step) if correction else value
+
+
+# --------------------------------------------------------------------------- forward
+
+
+def _forward_kernel(params_ref, source_ref, out_ref, *, pad, tile, samples, n_dirs,
+                    correction):
+    origin = _origin(tile)
+    radius, offset = params_ref[0], params_ref[1]
+    dtype = out_ref.dtype
+
+    def direction_body(l, total):
+        direction = [params_ref[2 + 4 * l + ax] for ax in range(3)]
+        weight = params_ref[2 + 4 * l + 3]
+
+        def sample_body(i, carry):
+            transmittance, occlusion = carry
+            step, frac, shift = _position(radius, offset, samples, i, direction)
+            alpha = _blend(_weights(frac), _windows(source_ref, origin, pad, tile, shift))
+            transmittance = transmittance * (1 - _opacity(alpha, step, correction))
+            return transmittance, occlusion + (1 - transmittance)
+
+        zeros = jnp.zeros(tile, dtype)
+        _, occlusion = lax.fori_loop(0, samples - 1, sample_body, (zeros + 1, zeros))
+        return total + weight * occlusion
+
+    out_ref[...] = lax.fori_loop(0, n_dirs, direction_body, jnp.zeros(tile, dtype))
+
+
+def _check_size(elements: int) -> None:
+    if elements > _MAX_ELEMENTS:
+        raise ValueError(
+            f"volshade.lao: with implementation='pallas' a buffer of {elements} elements "
+            f"is needed, more than the 2**31 - 1 that Triton's 32-bit indexing reaches; "
+            f"use implementation='xla' for a volume this large.")
+
+
+def _source(alpha, pad, out_shape):
+    """``alpha`` zero-padded by ``pad`` in front and up to ``out_shape + pad`` behind."""
+    _check_size(math.prod(o + 2 * p for o, p in zip(out_shape, pad, strict=True)))
+    return jnp.pad(alpha, tuple((p, p + o - s) for p, o, s
+                                in zip(pad, out_shape, alpha.shape, strict=True)))
+
+
+def _forward(alpha, directions, weights, radius, offset, *, pad, samples, correction, launch,
+             interpret):
+    tile, grid, out_shape = _tiling(alpha.shape, launch.tile)
+    params = _pack(radius, offset, jnp.concatenate([directions, weights[:, None]], 1),
+                   dtype=alpha.dtype)
+    kernel = functools.partial(_forward_kernel, pad=pad, tile=tile, samples=samples,
+                               n_dirs=directions.shape[0], correction=correction)
+    total = pl.pallas_call(
+        kernel, out_shape=jax.ShapeDtypeStruct(out_shape, alpha.dtype), grid=grid,
+        in_specs=[pl.no_block_spec, pl.no_block_spec],
+        out_specs=pl.BlockSpec(tile, lambda i, j, k: (i, j, k)),
+        **_compiler_params(launch, interpret))(params, _source(alpha, pad, out_shape))
+    return total[:alpha.shape[0], :alpha.shape[1], :alpha.shape[2]]
+
+
+# --------------------------------------------------------------------------- reverse
+
+
+def _chunk_starts_kernel(params_ref, source_ref, starts_ref, occ_ref, *, pad, tile, samples,
+                         n_chunks, chunk, correction):
+    origin = _origin(tile)
+    radius, offset = params_ref[0], params_ref[1]
+    direction = [params_ref[2 + ax] for ax in range(3)]
+    dtype = occ_ref.dtype
+
+    def chunk_body(k, carry):
+        starts_ref[k] = carry[0]
+
+        def sample_body(j, carry):
+            transmittance, occlusion = carry
+            index = k * chunk + j
+            valid = (index < samples - 1).astype(dtype)
+            step, frac, shift = _position(radius, offset, samples, index, direction)
+            alpha = _blend(_weights(frac), _windows(source_ref, origin, pad, tile, shift))
+            transmittance = transmittance * (1 - valid * _opacity(alpha, step, correction))
+            return transmittance, occlusion + valid * (1 - transmittance)
+
+        return lax.fori_loop(0, chunk, sample_body, carry)
+
+    zeros = jnp.zeros(tile, dtype)
+    _, occlusion = lax.fori_loop(0, n_chunks, chunk_body, (zeros + 1, zeros))
+    occ_ref[...] = occlusion
+
+
+def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, start_ref, suffix_ref, ct_ref,
+                             g_in_ref, slope_in_ref, radius_in_ref, suffix_out_ref, g_ref,
+                             slope_ref, radius_ref, *, pad, tile, samples, chunk, correction):
+    del g_in_ref  # aliased to g_ref: its zero halo is kept, the interior rewritten
+    origin = _origin(tile)
+    radius, offset = params_ref[0], params_ref[1]
+    direction = [params_ref[2 + ax] for ax in range(3)]
+    cotangent = params_ref[5] * ct_ref[...]
+    dtype = ct_ref.dtype
+    first = index_ref[0] * chunk
+
+    transmittance = start_ref[...]
+    kept = []
+    for j in range(chunk):
+        index = first + j
+        valid = (index < samples - 1).astype(dtype)
+        step, frac, shift = _position(radius, offset, samples, index, direction)
+        windows = _windows(source_ref, origin, pad, tile, shift)
+        alpha = _blend(_weights(frac), windows)
+        slope = _blend(_corner_slopes(frac, direction), windows)
+        kept.append((transmittance, alpha, slope, valid, step, index))
+        transmittance = transmittance * (1 - valid * _opacity(alpha, step, correction))
+
+    suffix_next = suffix_ref[...]
+    acc_slope, acc_radius = slope_in_ref[...], radius_in_ref[...]
+    for j in reversed(range(chunk)):
+        transmittance, alpha, slope, valid, step, index = kept[j]
+        suffix = valid + suffix_next
+        g_corrected = cotangent * valid * transmittance * suffix
+        if correction:
+            corrected, vjp = jax.vjp(correct_opacity, alpha, jnp.broadcast_to(step, tile))
+            g_alpha, g_ratio = vjp(g_corrected)
+            acc_radius = acc_radius + g_ratio / samples
+        else:
+            corrected, g_alpha = alpha, g_corrected
+        g_slope = g_alpha * slope
+        acc_slope = acc_slope + g_slope
+        acc_radius = acc_radius + ((index.astype(dtype) + 0.5) / samples) * g_slope
+        g_ref[j, pl.ds(origin[0] + pad[0], tile[0]), pl.ds(origin[1] + pad[1], tile[1]),
+              pl.ds(origin[2] + pad[2], tile[2])] = g_alpha
+        suffix_next = (1 - valid * corrected) * suffix
+    suffix_out_ref[...] = suffix_next
+    slope_ref[...] = acc_slope
+    radius_ref[...] = acc_radius
+
+
+def _chunk_adjoint_kernel(params_ref, index_ref, g_ref, acc_in_ref, acc_ref, *, pad, tile,
+                          samples, chunk):
+    r"""$\bar\alpha(z) \mathrel{+}= \sum_j \sum_c w_c\, g_j(z - \mathrm{shift}_c)$ with the
+    forward read's shift ``clip(pad + n + c, 0, 2 pad) - pad``; the halo'd buffer
+    holds $g_j(x)$ at ``x + pad``."""
+    origin = _origin(tile)
+    radius, offset = params_ref[0], params_ref[1]
+    direction = [params_ref[2 + ax] for ax in range(3)]
+    first = index_ref[0] * chunk
+    total = acc_in_ref[...]
+    for j in range(chunk):
+        _, frac, shift = _position(radius, offset, samples, first + j, direction)
+        for corner, weight in _corner_weights(frac):
+            start = [origin[ax] + 2 * pad[ax]
+                     - jnp.clip(pad[ax] + shift[ax] + corner[ax], 0, 2 * pad[ax])
+                     for ax in range(3)]
+            total = total + weight * g_ref[j, pl.ds(start[0], tile[0]), pl.ds(start[1], tile[1]),
+                                           pl.ds(start[2], tile[2])]
+    acc_ref[...] = total
+
+
+def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, samples,
+              correction, launch, interpret):
+    """Cotangents of ``alpha``, ``weights``, ``radius`` and ``offset``."""
+    dtype = alpha.dtype
+    shape = alpha.shape
+    tile, grid, out_shape = _tiling(shape, launch.tile)
+    n_chunks, chunk = _chunking(samples - 1)
+    source = _source(alpha, pad, out_shape)
+    ct = jnp.pad(cotangent, tuple((0, o - s) for o, s in zip(out_shape, shape, strict=True)))
+    halo = tuple(o + 2 * p for o, p in zip(out_shape, pad, strict=True))
+    _check_size(chunk * math.prod(halo))
+    volume = jax.ShapeDtypeStruct(out_shape, dtype)
+    block = pl.BlockSpec(tile, lambda i, j, k: (i, j, k))
+    common = {"pad": pad, "tile": tile, "samples": samples}
+    call = functools.partial(pl.pallas_call, grid=grid,
+                             **_compiler_params(launch, interpret))
+
+    starts_call = call(
+        functools.partial(_chunk_starts_kernel, n_chunks=n_chunks, chunk=chunk,
+                          correction=correction, **common),
+        out_shape=(jax.ShapeDtypeStruct((n_chunks, *out_shape), dtype), volume),
+        in_specs=[pl.no_block_spec, pl.no_block_spec],
+        out_specs=(pl.BlockSpec((n_chunks, *tile), lambda i, j, k: (0, i, j, k)), block))
+    cotangents_call = call(
+        functools.partial(_chunk_cotangents_kernel, chunk=chunk, correction=correction,
+                          **common),
+        out_shape=(volume, jax.ShapeDtypeStruct((chunk, *halo), dtype), volume, volume),
+        in_specs=[pl.no_block_spec, pl.no_block_spec, pl.no_block_spec, block, block, block,
+                  pl.no_block_spec, block, block],
+        out_specs=(block, pl.no_block_spec, block, block),
+        input_output_aliases={6: 1, 7: 2, 8: 3})
+    adjoint_call = call(
+        functools.partial(_chunk_adjoint_kernel, chunk=chunk, **common),
+        out_shape=volume, in_specs=[pl.no_block_spec, pl.no_block_spec, pl.no_block_spec, block],
+        out_specs=block, input_output_aliases={3: 0})
+
+    def direction_bwd(carry, direction_weight):
+        d_alpha, acc_slope, acc_radius, g = carry
+        direction, weight = direction_weight
+        params = _pack(radius, offset, direction, weight, dtype=dtype)
+        starts, occlusion = starts_call(params, source)
+
+        def chunk_bwd(state, k):
+            suffix, g, d_alpha, acc_slope, acc_radius = state
+            index = jnp.reshape(k, (1,)).astype(jnp.int32)
+            suffix, g, acc_slope, acc_radius = cotangents_call(
+                params, index, source, starts[k], suffix, ct, g, acc_slope, acc_radius)
+            d_alpha = adjoint_call(params, index, g, d_alpha)
+            return (suffix, g, d_alpha, acc_slope, acc_radius), None
+
+        state = (jnp.zeros(out_shape, dtype), g, d_alpha, acc_slope, acc_radius)
+        (_, g, d_alpha, acc_slope, acc_radius), _ = lax.scan(
+            chunk_bwd, state, jnp.arange(n_chunks), reverse=True)
+        return (d_alpha, acc_slope, acc_radius, g), jnp.sum(ct * occlusion)
+
+    zeros = jnp.zeros(out_shape, dtype)
+    init = (zeros, zeros, zeros, jnp.zeros((chunk, *halo), dtype))
+    (d_alpha, acc_slope, acc_radius, _), d_weights = lax.scan(
+        direction_bwd, init, (directions, weights))
+    d_radius = jnp.sum(acc_radius)
+    d_offset = jnp.sum(acc_slope) - d_radius
+    return (d_alpha[:shape[0], :shape[1], :shape[2]], d_weights, d_radius, d_offset)
+
+
+# --------------------------------------------------------------------------- public (private API)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3, 4))
+def occlusion_sum(pad, samples, correction, launch, interpret, alpha, directions, weights,
+                  radius, offset):
+    r"""$\sum_l \hat w_l\, occ_l$ over the volume ``alpha`` (unpadded), as
+    :func:`volshade.lao._occlusion_sum` computes it for a padded source; ``samples``
+    must be at least 2. ``directions`` get a zero cotangent."""
+    return _forward(alpha, directions, weights, radius, offset, pad=pad, samples=samples,
+                    correction=correction, launch=launch, interpret=interpret)
+
+
+def _occlusion_sum_fwd(pad, samples, correction, launch, interpret, alpha, directions,
+                       weights, radius, offset):
+    out = occlusion_sum(pad, samples, correction, launch, interpret, alpha, directions, weights,
+                        radius, offset)
+    return out, (alpha, directions, weights, radius, offset)
+
+
+def _occlusion_sum_bwd(pad, samples, correction, launch, interpret, residuals, cotangent):
+    alpha, directions, weights, radius, offset = residuals
+    d_alpha, d_weights, d_radius, d_offset = _backward(
+        alpha, directions, weights, radius, offset, cotangent, pad=pad, samples=samples,
+        correction=correction, launch=launch, interpret=interpret)
+    return (d_alpha, jnp.zeros_like(directions), d_weights.astype(weights.dtype),
+            d_radius.astype(radius.dtype), d_offset.astype(offset.dtype))
+
+
+occlusion_sum.defvjp(_occlusion_sum_fwd, _occlusion_sum_bwd)
