@@ -259,3 +259,77 @@ def run_gpu(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: float = 5
                                                                   - naive(small, r16))))
     return {"title": "LAO on GPU", "rows": rows, "ratios": ratios,
             "device": str(jax.devices()[0])}
+
+
+def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: float = 50.0,
+                   *, interpret: bool = False) -> dict:
+    """``implementation="pallas"`` on the issue's GPU case, against the XLA march in the
+    same run: forward time per launch (tile, warps) in ``volshade._lao_pallas.LAUNCHES``,
+    then forward + gradient w.r.t. opacity and radius with the fastest, and the
+    largest difference from the XLA march (values and gradients). A launch that fails
+    to compile is recorded with its error and skipped. ``interpret`` runs the kernels
+    in Pallas' interpreter (a dry run of this script on a CPU, at small sizes)."""
+    from volshade import _lao_pallas as pallas
+
+    dirs = vdirs.fibonacci(n_dirs).astype(jnp.float32)
+    weights = jnp.full((n_dirs,), 1 / n_dirs, jnp.float32)
+    alpha = _shells_jnp(n)
+    r, a = jnp.float32(radius), jnp.float32(1.0)
+    pad = (min(n, math.ceil(radius) + 1),) * 3
+    work = alpha.size * n_dirs * samples
+    repeats = 1 if interpret else 3
+
+    def occlusion(launch):
+        return lambda al, rr: pallas.occlusion_sum(pad, samples, False, launch, interpret, al,
+                                                   dirs, weights, rr, a)
+
+    xla = _fast(dirs, samples, max_radius=radius)
+    t_xla = time_fn(xla, alpha, r, repeats=repeats)
+    rows = [{"case": f"xla forward {n}^3 L{n_dirs} M{samples} R{radius}",
+             "median_s": t_xla["median_s"], "Gsamples_per_s": work / t_xla["median_s"] / 1e9}]
+    best, timings = None, {}
+    for launch in pallas.LAUNCHES:
+        fn = jax.jit(occlusion(launch))
+        try:
+            t = time_fn(fn, alpha, r, repeats=repeats)
+        except Exception as err:  # noqa: BLE001 - a launch Triton rejects is reported, not fatal
+            rows.append({"case": f"pallas forward {launch}", "error": repr(err)[:300]})
+            continue
+        timings[launch] = t["median_s"]
+        rows.append({"case": f"pallas forward tile {launch.tile} warps {launch.num_warps}",
+                     "median_s": t["median_s"], "compile_s": t["first_call_s"] - t["median_s"],
+                     "Gsamples_per_s": work / t["median_s"] / 1e9})
+        if best is None or t["median_s"] < timings[best]:
+            best = launch
+    ratios = {}
+    if best is None:
+        return {"title": "LAO Pallas on GPU", "rows": rows, "ratios": ratios}
+    forward = jax.jit(occlusion(best))
+    ao = 1 - forward(alpha, r) / samples
+    ratios["pallas_forward_speedup_vs_xla"] = t_xla["median_s"] / timings[best]
+    ratios["pallas_max_abs_diff_vs_xla"] = float(jnp.max(jnp.abs(ao - xla(alpha, r))))
+
+    def loss(fn):
+        return jax.jit(jax.value_and_grad(lambda al, rr: jnp.sum(fn(al, rr)), (0, 1)))
+
+    both = loss(lambda al, rr: 1 - forward(al, rr) / samples)
+    try:
+        t_b = time_fn(both, alpha, r, repeats=repeats)
+    except Exception as err:  # noqa: BLE001 - as above
+        rows.append({"case": f"pallas forward+grad {best}", "error": repr(err)[:300]})
+        return {"title": "LAO Pallas on GPU", "rows": rows, "ratios": ratios}
+    rows.append({"case": f"pallas forward+grad(alpha, radius), tile {best.tile} warps "
+                         f"{best.num_warps}", "median_s": t_b["median_s"],
+                 "compile_s": t_b["first_call_s"] - t_b["median_s"]})
+    ratios["pallas_forward_plus_grad_over_forward"] = t_b["median_s"] / timings[best]
+    (_, (g_alpha, g_radius)) = both(alpha, r)
+    (_, (x_alpha, x_radius)) = loss(xla)(alpha, r)
+    ratios["pallas_grad_alpha_max_rel_diff_vs_xla"] = float(
+        jnp.max(jnp.abs(g_alpha - x_alpha)) / jnp.max(jnp.abs(x_alpha)))
+    ratios["pallas_grad_radius_rel_diff_vs_xla"] = float(jnp.abs(g_radius - x_radius)
+                                                         / jnp.abs(x_radius))
+    vol = alpha.size * 4
+    ratios["pallas_grad_temp_over_volume"] = (
+        both.lower(alpha, r).compile().memory_analysis().temp_size_in_bytes / vol)
+    return {"title": "LAO Pallas on GPU", "rows": rows, "ratios": ratios,
+            "device": str(jax.devices()[0])}

@@ -26,7 +26,7 @@ import sys
 
 import jax
 
-BENCHMARKS = ("render", "lao", "obscurance", "composition", "gpu", "gpu_recheck")
+BENCHMARKS = ("render", "lao", "obscurance", "composition", "gpu", "gpu_recheck", "lao_pallas")
 
 
 def _format_table(rows: list[dict]) -> str:
