@@ -10,10 +10,10 @@ references). Cases:
   compositing, each computed on the GPU and on the CPU in this process; max
   |GPU - CPU| in float32;
 * LAO (issue 3): 512^3, L = 54, M = 50, R = 50: trilinear samples per second, forward
-  and forward + gradient w.r.t. opacity and radius (``benchmarks.lao.run_gpu``); the
-  same with ``implementation="pallas"`` over its launch settings
-  (``benchmarks.lao.run_gpu_pallas``; alone: ``benchmarks.run lao_pallas``); and
-  bricked against plain on a sparse 256^3 ball (bricks of 32, R = 8);
+  and forward + gradient w.r.t. opacity and radius (``benchmarks.lao.run_gpu``); and
+  bricked against plain on a sparse 256^3 ball (bricks of 32, R = 8). The same
+  case with ``implementation="pallas"`` is ``benchmarks.run lao_pallas``, a process
+  of its own (a fault of an untried kernel would end this run);
 * obscurance (issue 4): 256^3, 162 directions, d_max 64 (goal <= 0.25 s on an H100);
 * composition (issue 5): 512^2 rays x 512 samples, standard and importance-aware,
   forward (goal <= 10 ms on an H100) and forward + gradient, scan unrolled 1 and 8;
@@ -45,12 +45,6 @@ from volshade.saliency import saliency
 from ._timing import time_fn
 
 
-def _on_cpu() -> bool:
-    """Whether the default device (set by ``jax.default_device``) is a CPU."""
-    return jax.config.jax_default_device is not None and \
-        jax.config.jax_default_device.platform == "cpu"
-
-
 def _agreement() -> list[dict]:
     rng = np.random.default_rng(0)
     alpha = jnp.asarray(rng.random((32, 32, 32)) ** 4, jnp.float32)
@@ -73,14 +67,6 @@ def _agreement() -> list[dict]:
     cases = {
         "render phong+lao+importance 48^3 -> 64^2": lambda: eqx.filter_jit(vs.render)(scene, cam),
         "lao 32^3 L16 M8": lambda: lao(alpha, directions=16, radius=6.0, samples=8),
-        # the Pallas kernels on the GPU against the XLA march on the CPU
-        "lao pallas (CPU: xla) 32^3 L16 M8, opacity correction": lambda: lao(
-            alpha, directions=16, radius=6.0, samples=8, opacity_correction=True,
-            implementation="xla" if _on_cpu() else "pallas"),
-        "lao pallas (CPU: xla) gradient w.r.t. alpha": lambda: jax.grad(
-            lambda a: jnp.sum(weights[8:40, 8:40, 8:40] * lao(
-                a, directions=16, radius=6.0, samples=8,
-                implementation="xla" if _on_cpu() else "pallas")))(alpha),
         "lao bricked 48^3 sparse": lambda: bricked(sparse),
         "lao bricked gradient w.r.t. alpha": lambda: jax.grad(
             lambda a: jnp.sum(weights * bricked(a)))(sparse),
@@ -109,12 +95,9 @@ def run(quick: bool) -> dict:
 
     # LAO first: the largest case, and the device's peak memory counts from process start,
     # so its peak ratios are the LAO's own only before the other large cases run
-    from .lao import run_gpu, run_gpu_pallas
+    from .lao import run_gpu
 
     lao_result = run_gpu(n=256 if quick else 512)
-    rows += lao_result["rows"]
-    ratios.update({f"lao {k}": v for k, v in lao_result["ratios"].items()})
-    lao_result = run_gpu_pallas(n=256 if quick else 512)
     rows += lao_result["rows"]
     ratios.update({f"lao {k}": v for k, v in lao_result["ratios"].items()})
 

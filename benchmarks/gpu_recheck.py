@@ -1,5 +1,4 @@
-"""A short GPU re-check after a change: GPU/CPU agreement and the LAO 512^3 case only
-(XLA and Pallas).
+"""A short GPU re-check after a change: GPU/CPU agreement and the LAO 512^3 case only.
 
     python -m benchmarks.run gpu_recheck
 
@@ -7,13 +6,11 @@ The cheap subset of ``benchmarks.gpu`` for when device time is short.
 """
 
 from .gpu import _agreement
-from .lao import run_gpu, run_gpu_pallas
+from .lao import run_gpu
 
 
 def run(quick: bool) -> dict:
     rows = _agreement()
-    n = 256 if quick else 512
-    lao, pallas = run_gpu(n=n), run_gpu_pallas(n=n)
+    lao = run_gpu(n=256 if quick else 512)
     return {"title": "GPU re-check: agreement and LAO", "sizes": {"quick": quick},
-            "rows": rows + lao["rows"] + pallas["rows"],
-            "ratios": {f"lao {k}": v for k, v in {**lao["ratios"], **pallas["ratios"]}.items()}}
+            "rows": rows + lao["rows"], "ratios": {f"lao {k}": v for k, v in lao["ratios"].items()}}

@@ -74,10 +74,11 @@ def test_float32_matches_gather_reference():
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("case", [0, 1])
+@pytest.mark.parametrize("case", range(len(CASES)))
 def test_gradients_match_xla_march(case):
     """Every cotangent (opacity, radius, offset, weights) of the Pallas VJP equals the
-    XLA VJP's, which test_lao checks against finite differences."""
+    XLA VJP's, which test_lao checks against finite differences. Case 2 has masked
+    samples (3 samples in 2 chunks of 2) and clamped shifts."""
     alpha, radius, offset, weights = _inputs(case)
     if weights is None:
         weights = jnp.full((CASES[case][1].shape[0],), 1.0)
@@ -164,33 +165,82 @@ def test_bad_input():
         lao(alpha, directions=6, radius=2.0, implementation="pallas", brick_size=4)
     with pytest.raises(ValueError, match="implementation"):
         LocalAmbientOcclusion(2.0, implementation="triton")
-    with pytest.raises(ValueError, match="Triton's 32-bit indexing"):
-        pallas._check_size(2**31)
 
 
-def _export_for_cuda(fn, *shapes):
+def test_half_precision_is_computed_in_float32():
+    alpha = _alpha((6, 7, 8), 5, jnp.float32)
+    kw = dict(directions=6, radius=3.0, samples=5, implementation="pallas")
+    half = lao(alpha.astype(jnp.bfloat16), **kw)
+    assert half.dtype == jnp.bfloat16
+    # lao rounds the directions, radius and weights to bfloat16 too: equal to a few ulps
+    full = lao(alpha.astype(jnp.bfloat16).astype(jnp.float32), **kw)
+    np.testing.assert_allclose(half.astype(jnp.float32), full, rtol=0, atol=3 * 2.0**-8)
+
+
+@pytest.mark.parametrize("extent, pad", [(7, 7), (20, 5), (9, 4)])
+def test_every_window_lies_inside_its_buffer(extent, pad):
+    """Triton does not check bounds (and Pallas' interpreter clamps windows, so an
+    out-of-bounds read would not show in the value tests): the index arithmetic the
+    kernels use keeps every window inside the source (``out + 2 pad``) and the halo'd
+    cotangent buffer (``out + 2 pad``) for every tile and any shift, also far beyond
+    the padding (a clamped shift when the padding is the extent)."""
+    for tile_edge in (1, 2, 4, 8):
+        tile, _, out = pallas._tiling((extent,) * 3, (tile_edge,) * 3)
+        size = out[0] + 2 * pad
+        origins = jnp.arange(0, out[0], tile[0])[:, None, None]
+        shifts = jnp.arange(-3 * pad - 3, 3 * pad + 3)[None, :, None]
+        corners = jnp.arange(2)[None, None, :]
+        for start in (pallas.window_start, pallas.adjoint_start):
+            at = start(origins, pad, shifts, corners)
+            assert int(jnp.min(at)) >= 0 and int(jnp.max(at)) + tile[0] <= size
+
+
+def _export_for_cuda(fn, *args):
+    """Lower ``fn`` for CUDA on this machine. jaxlib <= 0.10.2 embeds the Triton IR in
+    the custom call (compiled by XLA on the GPU); later ones compile to PTX while
+    lowering, which needs Triton's CUDA compiler: then this runs only on a GPU."""
+    from jax._src.lib import triton, version
+
+    if version > (0, 10, 2) and not triton.has_compilation_handler("cuda"):
+        pytest.skip("this jaxlib compiles Triton kernels while lowering: needs CUDA")
     exported = export.export(
         jax.jit(fn), platforms=["cuda"],
-        disabled_checks=[export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")],
-    )(*[jax.ShapeDtypeStruct(s, jnp.float32) for s in shapes])
-    return exported.mlir_module()
+        disabled_checks=[export.DisabledSafetyCheck.custom_call(target)
+                         for target in _TRITON_CALLS])(*args)
+    text = exported.mlir_module()
+    return sum(text.count(target) for target in _TRITON_CALLS)
+
+
+_TRITON_CALLS = ("__gpu$xla.gpu.triton", "triton_kernel_call_ffi")
 
 
 @pytest.mark.parametrize("launch", pallas.LAUNCHES)
 def test_kernels_lower_to_triton(launch):
     """The four kernels (forward; chunk starts, cotangents and adjoint of the VJP)
-    lower to Triton for every launch the GPU benchmark times, vmapped too. Triton's
-    own compilation to PTX happens only on a GPU (``benchmarks/gpu.py``)."""
+    lower to Triton for every launch the GPU benchmark times, vmapped too, and not
+    to the interpreter. Triton's compilation to PTX happens on a GPU, when XLA
+    compiles (``benchmarks/gpu.py``), or here on jaxlib > 0.10.2 with CUDA."""
     dirs = vdirs.fibonacci(6).astype(jnp.float32)
 
     def value_and_grad(alpha, radius):
         def total(a, r):
             return jnp.sum(1 - pallas.occlusion_sum(
-                (9, 9, 9), 9, True, launch, False, a, dirs, jnp.full((6,), 1 / 6, jnp.float32),
-                r, jnp.float32(1.0)))
+                a, dirs, jnp.full((6,), 1 / 6, jnp.float32), r, 1.0, pad=(9, 9, 9),
+                samples=9, correction=True, launch=launch))
         return jax.value_and_grad(total, argnums=(0, 1))(alpha, radius)
 
-    text = _export_for_cuda(value_and_grad, (20, 24, 40), ())
-    assert text.count("__gpu$xla.gpu.triton") == 4
-    text = _export_for_cuda(jax.vmap(value_and_grad), (2, 20, 24, 40), (2,))
-    assert text.count("__gpu$xla.gpu.triton") == 4
+    struct = jax.ShapeDtypeStruct
+    assert _export_for_cuda(value_and_grad, struct((20, 24, 40), jnp.float32),
+                            struct((), jnp.float32)) == 4
+    assert _export_for_cuda(jax.vmap(value_and_grad), struct((2, 20, 24, 40), jnp.float32),
+                            struct((2,), jnp.float32)) == 4
+
+
+def test_half_precision_lowers_to_triton():
+    """Triton has no half-precision division: bf16 and f16 volumes are promoted."""
+    def f(alpha):
+        return pallas.occlusion_sum(alpha, vdirs.fibonacci(4), jnp.full((4,), 0.25), 3.0,
+                                    1.0, pad=(4, 4, 4), samples=5, correction=False)
+
+    for dtype in (jnp.bfloat16, jnp.float16):
+        assert _export_for_cuda(f, jax.ShapeDtypeStruct((8, 8, 8), dtype)) == 1

@@ -30,13 +30,19 @@ direction at a time, in three kernels:
    reads, but Pallas' interpreter, which the CPU tests use, does not emulate
    partly out-of-bounds windows).
 
-Memory in reverse mode: about $2\sqrt{M} + 6$ volumes (the chunk starts, the
-halo'd $g$ buffer of one chunk, and the carried $S$, cotangent and accumulators),
-for any $L$.
+Memory in reverse mode, in volumes of the (tile-rounded) input: $\sqrt M$ chunk
+starts, the $g$ buffer of one chunk ($\sqrt M$ volumes each grown by the padding,
+$(n + 2p)^3 / n^3$ of one: about 1.7 at $512^3$ with $R = 50$, but 27 when the
+padding is the whole extent, i.e. a traced radius without ``max_radius``) and about
+six carried volumes, for any $L$.
 
-On a CPU the kernels run in Pallas' interpreter (exact, slow): that is how the
-test suite checks them against the XLA path. Tile shapes are powers of two (a
-Triton requirement); the volume is padded up to whole tiles and cropped.
+When lowered for CUDA the kernels are compiled by Triton; on any other platform
+they run in Pallas' interpreter (exact, slow), which is how the test suite checks
+them against the XLA march on a CPU (``lax.platform_dependent`` chooses, so a
+computation placed on the CPU of a GPU machine is interpreted too). Tile shapes are
+powers of two (a Triton requirement); the volume is padded up to whole tiles and
+cropped. The kernels compute in float32 at least (Triton has no half-precision
+division); half-precision inputs are promoted and the result cast back.
 """
 
 import functools
@@ -62,10 +68,6 @@ class Launch(NamedTuple):
 #: The default launch is not yet tuned on a GPU; ``benchmarks/gpu.py`` times these.
 LAUNCHES = (Launch(), Launch((4, 8, 32), 4), Launch((4, 8, 32), 8), Launch((1, 8, 64), 4),
             Launch((2, 4, 32), 2), Launch((4, 16, 32), 8))
-
-# Triton indexes with 32-bit integers
-_MAX_ELEMENTS = 2**31 - 1
-
 
 def _tiling(shape, tile):
     """The tile actually used (no larger than the volume's power-of-two cover), the
@@ -102,18 +104,33 @@ def _position(radius, offset, samples, index, direction):
         [f.astype(jnp.int32) for f in floor]
 
 
-def _windows(ref, origin, pad, tile, shift):
-    """The eight tile-sized windows ``source[origin + clip(pad + n + c, 0, 2 pad)]``.
+def window_start(origin, pad, shift, corner):
+    """Start, along one axis, of the source window that corner ``corner`` of a sample
+    shifted by ``shift`` reads for the tile at ``origin``:
+    ``origin + clip(pad + shift + corner, 0, 2 pad)``, in ``[origin, origin + 2 pad]``.
 
     The clip mirrors :func:`volshade.lao._corner_slices`: it binds only when the
     padding is the whole extent, and then the window lies in the zero padding.
     """
+    return origin + jnp.clip(pad + shift + corner, 0, 2 * pad)
+
+
+def adjoint_start(origin, pad, shift, corner):
+    """Start, along one axis, of the window of the halo'd cotangent buffer (voxel
+    ``x`` at ``x + pad``) that the adjoint reads for the tile at ``origin``: the
+    forward read moved voxel ``x`` by ``window_start - origin - pad``, so the adjoint
+    reads ``origin - that + pad``, in ``[origin, origin + 2 pad]`` as well."""
+    return origin + 2 * pad - jnp.clip(pad + shift + corner, 0, 2 * pad)
+
+
+def _windows(ref, origin, pad, tile, shift, start=window_start, lead=()):
+    """The eight tile-sized windows of ``ref`` (after the ``lead`` indices) that the
+    corners of a sample shifted by ``shift`` touch."""
     out = []
     for corner in _CORNERS:
-        start = [origin[ax] + jnp.clip(pad[ax] + shift[ax] + corner[ax], 0, 2 * pad[ax])
-                 for ax in range(3)]
-        out.append(ref[pl.ds(start[0], tile[0]), pl.ds(start[1], tile[1]),
-                       pl.ds(start[2], tile[2])])
+        at = [start(origin[ax], pad[ax], shift[ax], corner[ax]) for ax in range(3)]
+        out.append(ref[(*lead, pl.ds(at[0], tile[0]), pl.ds(at[1], tile[1]),
+                        pl.ds(at[2], tile[2]))])
     return out
 
 
@@ -163,17 +180,8 @@ def _forward_kernel(params_ref, source_ref, out_ref, *, pad, tile, samples, n_di
     out_ref[...] = lax.fori_loop(0, n_dirs, direction_body, jnp.zeros(tile, dtype))
 
 
-def _check_size(elements: int) -> None:
-    if elements > _MAX_ELEMENTS:
-        raise ValueError(
-            f"volshade.lao: with implementation='pallas' a buffer of {elements} elements "
-            f"is needed, more than the 2**31 - 1 that Triton's 32-bit indexing reaches; "
-            f"use implementation='xla' for a volume this large.")
-
-
 def _source(alpha, pad, out_shape):
     """``alpha`` zero-padded by ``pad`` in front and up to ``out_shape + pad`` behind."""
-    _check_size(math.prod(o + 2 * p for o, p in zip(out_shape, pad, strict=True)))
     return jnp.pad(alpha, tuple((p, p + o - s) for p, o, s
                                 in zip(pad, out_shape, alpha.shape, strict=True)))
 
@@ -222,7 +230,7 @@ def _chunk_starts_kernel(params_ref, source_ref, starts_ref, occ_ref, *, pad, ti
     occ_ref[...] = occlusion
 
 
-def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, start_ref, suffix_ref, ct_ref,
+def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, starts_ref, suffix_ref, ct_ref,
                              g_in_ref, slope_in_ref, radius_in_ref, suffix_out_ref, g_ref,
                              slope_ref, radius_ref, *, pad, tile, samples, chunk, correction):
     del g_in_ref  # aliased to g_ref: its zero halo is kept, the interior rewritten
@@ -233,7 +241,8 @@ def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, start_ref, suffi
     dtype = ct_ref.dtype
     first = index_ref[0] * chunk
 
-    transmittance = start_ref[...]
+    transmittance = starts_ref[index_ref[0], pl.ds(origin[0], tile[0]),
+                               pl.ds(origin[1], tile[1]), pl.ds(origin[2], tile[2])]
     kept = []
     for j in range(chunk):
         index = first + j
@@ -280,12 +289,8 @@ def _chunk_adjoint_kernel(params_ref, index_ref, g_ref, acc_in_ref, acc_ref, *, 
     total = acc_in_ref[...]
     for j in range(chunk):
         _, frac, shift = _position(radius, offset, samples, first + j, direction)
-        for corner, weight in _corner_weights(frac):
-            start = [origin[ax] + 2 * pad[ax]
-                     - jnp.clip(pad[ax] + shift[ax] + corner[ax], 0, 2 * pad[ax])
-                     for ax in range(3)]
-            total = total + weight * g_ref[j, pl.ds(start[0], tile[0]), pl.ds(start[1], tile[1]),
-                                           pl.ds(start[2], tile[2])]
+        total = total + _blend(_weights(frac), _windows(g_ref, origin, pad, tile, shift,
+                                                        adjoint_start, lead=(j,)))
     acc_ref[...] = total
 
 
@@ -299,7 +304,6 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
     source = _source(alpha, pad, out_shape)
     ct = jnp.pad(cotangent, tuple((0, o - s) for o, s in zip(out_shape, shape, strict=True)))
     halo = tuple(o + 2 * p for o, p in zip(out_shape, pad, strict=True))
-    _check_size(chunk * math.prod(halo))
     volume = jax.ShapeDtypeStruct(out_shape, dtype)
     block = pl.BlockSpec(tile, lambda i, j, k: (i, j, k))
     common = {"pad": pad, "tile": tile, "samples": samples}
@@ -316,8 +320,8 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
         functools.partial(_chunk_cotangents_kernel, chunk=chunk, correction=correction,
                           **common),
         out_shape=(volume, jax.ShapeDtypeStruct((chunk, *halo), dtype), volume, volume),
-        in_specs=[pl.no_block_spec, pl.no_block_spec, pl.no_block_spec, block, block, block,
-                  pl.no_block_spec, block, block],
+        in_specs=[pl.no_block_spec, pl.no_block_spec, pl.no_block_spec, pl.no_block_spec,
+                  block, block, pl.no_block_spec, block, block],
         out_specs=(block, pl.no_block_spec, block, block),
         input_output_aliases={6: 1, 7: 2, 8: 3})
     adjoint_call = call(
@@ -335,7 +339,7 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
             suffix, g, d_alpha, acc_slope, acc_radius = state
             index = jnp.reshape(k, (1,)).astype(jnp.int32)
             suffix, g, acc_slope, acc_radius = cotangents_call(
-                params, index, source, starts[k], suffix, ct, g, acc_slope, acc_radius)
+                params, index, source, starts, suffix, ct, g, acc_slope, acc_radius)
             d_alpha = adjoint_call(params, index, g, d_alpha)
             return (suffix, g, d_alpha, acc_slope, acc_radius), None
 
@@ -353,33 +357,51 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
     return (d_alpha[:shape[0], :shape[1], :shape[2]], d_weights, d_radius, d_offset)
 
 
-# --------------------------------------------------------------------------- public (private API)
+# --------------------------------------------------------------------------- entry point
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3, 4))
-def occlusion_sum(pad, samples, correction, launch, interpret, alpha, directions, weights,
-                  radius, offset):
-    r"""$\sum_l \hat w_l\, occ_l$ over the volume ``alpha`` (unpadded), as
-    :func:`volshade.lao._occlusion_sum` computes it for a padded source; ``samples``
-    must be at least 2. ``directions`` get a zero cotangent."""
-    return _forward(alpha, directions, weights, radius, offset, pad=pad, samples=samples,
-                    correction=correction, launch=launch, interpret=interpret)
+def _on_platform(fn, *args):
+    """``fn(*args)`` compiled by Triton when lowered for CUDA, interpreted elsewhere."""
+    return lax.platform_dependent(*args, cuda=functools.partial(fn, interpret=False),
+                                  default=functools.partial(fn, interpret=True))
 
 
-def _occlusion_sum_fwd(pad, samples, correction, launch, interpret, alpha, directions,
-                       weights, radius, offset):
-    out = occlusion_sum(pad, samples, correction, launch, interpret, alpha, directions, weights,
-                        radius, offset)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3))
+def _occlusion_sum(pad, samples, correction, launch, alpha, directions, weights, radius,
+                   offset):
+    forward = functools.partial(_forward, pad=pad, samples=samples, correction=correction,
+                                launch=launch)
+    return _on_platform(forward, alpha, directions, weights, radius, offset)
+
+
+def _occlusion_sum_fwd(pad, samples, correction, launch, alpha, directions, weights, radius,
+                       offset):
+    out = _occlusion_sum(pad, samples, correction, launch, alpha, directions, weights, radius,
+                         offset)
     return out, (alpha, directions, weights, radius, offset)
 
 
-def _occlusion_sum_bwd(pad, samples, correction, launch, interpret, residuals, cotangent):
+def _occlusion_sum_bwd(pad, samples, correction, launch, residuals, cotangent):
     alpha, directions, weights, radius, offset = residuals
-    d_alpha, d_weights, d_radius, d_offset = _backward(
-        alpha, directions, weights, radius, offset, cotangent, pad=pad, samples=samples,
-        correction=correction, launch=launch, interpret=interpret)
+    backward = functools.partial(_backward, pad=pad, samples=samples, correction=correction,
+                                 launch=launch)
+    d_alpha, d_weights, d_radius, d_offset = _on_platform(backward, *residuals, cotangent)
     return (d_alpha, jnp.zeros_like(directions), d_weights.astype(weights.dtype),
             d_radius.astype(radius.dtype), d_offset.astype(offset.dtype))
 
 
-occlusion_sum.defvjp(_occlusion_sum_fwd, _occlusion_sum_bwd)
+_occlusion_sum.defvjp(_occlusion_sum_fwd, _occlusion_sum_bwd)
+
+
+def occlusion_sum(alpha, directions, weights, radius, offset, *, pad, samples: int,
+                  correction: bool, launch: Launch = Launch()):
+    r"""$\sum_l \hat w_l\, occ_l$ for the opacity volume ``alpha`` (unpadded), as
+    :func:`volshade.lao._occlusion_sum` computes it for the source padded by ``pad``;
+    ``samples`` must be at least 2. Differentiable in ``alpha``, ``weights``,
+    ``radius`` and ``offset`` (``directions`` get a zero cotangent). Computed in
+    float32 at least and returned in the dtype of ``alpha``."""
+    work = jnp.promote_types(alpha.dtype, jnp.float32)
+    total = _occlusion_sum(pad, samples, correction, launch,
+                           *(jnp.asarray(x).astype(work)
+                             for x in (alpha, directions, weights, radius, offset)))
+    return total.astype(alpha.dtype)

@@ -621,9 +621,9 @@ def lao(
         implementation: ``"xla"`` (the default) marches with fused shifted reads
             (see the module docstring); ``"pallas"`` uses Pallas kernels that march
             every ray of a tile of voxels in registers, forward and in reverse mode
-            (``volshade._lao_pallas``), compiled by Triton on a GPU and run in
-            Pallas' interpreter elsewhere (exact but slow: for tests). Both compute
-            the same values and gradients (to rounding). ``"pallas"`` has not yet
+            (``volshade._lao_pallas``), compiled by Triton on an NVIDIA GPU and run
+            in Pallas' interpreter elsewhere (exact but slow: for tests). Both
+            compute the same values and gradients (to rounding). ``"pallas"`` has not yet
             been timed on a GPU, hence not the default; it does not combine with
             ``brick_size``.
 
@@ -731,9 +731,8 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
         # imported here: Pallas is loaded only by those who ask for it
         from . import _lao_pallas
 
-        total = _lao_pallas.occlusion_sum(pad, samples, correction, _lao_pallas.Launch(),
-                                          jax.default_backend() != "gpu", alpha, dirs,
-                                          weights, radius, offset)
+        total = _lao_pallas.occlusion_sum(alpha, dirs, weights, radius, offset, pad=pad,
+                                          samples=samples, correction=correction)
         return 1 - total / samples
 
     def march(source, shape):
