@@ -95,6 +95,44 @@ def test_gradients_match_xla_march(case):
         np.testing.assert_allclose(g, w, rtol=1e-11, atol=1e-11)
 
 
+_LAUNCH_CASE = dict(dirs=vdirs.fibonacci(4), weights=jnp.asarray([0.1, 0.2, 0.3, 0.4]),
+                    pad=(4, 4, 4), samples=6, offset=0.5)
+
+
+def _launch_loss(alpha, radius, ct, launch):
+    c = _LAUNCH_CASE
+    return jnp.sum(ct * pallas.occlusion_sum(alpha, c["dirs"], c["weights"], radius,
+                                             c["offset"], pad=c["pad"], samples=c["samples"],
+                                             correction=False, launch=launch))
+
+
+@pytest.fixture(scope="module")
+def launch_reference():
+    """Inputs, and the XLA march's loss and gradients for them."""
+    c = _LAUNCH_CASE
+    alpha, radius = _alpha((5, 9, 13), 11), jnp.asarray(3.2)
+    ct = jnp.asarray(np.random.default_rng(2).normal(size=alpha.shape))
+
+    def xla(a, r):
+        return jnp.sum(ct * lao_module._occlusion_sum(
+            c["pad"], a.shape, False, c["samples"], jnp.pad(a, c["pad"][0]), c["dirs"],
+            c["weights"], r, c["offset"]))
+
+    return (alpha, radius, ct), jax.value_and_grad(xla, argnums=(0, 1))(alpha, radius)
+
+
+@pytest.mark.parametrize("launch", pallas.LAUNCHES)
+def test_every_launch_computes_the_same(launch, launch_reference):
+    """Tiles, warps and the shifted copies (``vector``) change how the kernels run,
+    not what they compute; the volume is smaller than some tiles and not a multiple
+    of any, and its ``w`` extent is not a multiple of ``vector``."""
+    args, (want, want_grads) = launch_reference
+    got, grads = jax.value_and_grad(_launch_loss, argnums=(0, 1))(*args, launch)
+    np.testing.assert_allclose(got, want, rtol=1e-13)
+    for g, w in zip(grads, want_grads, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-11, atol=1e-12)
+
+
 def test_radius_and_opacity_gradients_match_finite_differences():
     alpha, radius, offset, _ = _inputs(0)
     ct = jnp.asarray(np.random.default_rng(3).normal(size=alpha.shape))

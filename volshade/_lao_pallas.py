@@ -9,7 +9,10 @@ voxels and marches all $L$ rays and $M$ samples over it in registers: the
 volume is read only through the eight corner loads of each sample, which hit the
 cache (neighbouring tiles and samples read overlapping windows), and the output
 is written once. The sample offset $s_i l$ is the same for every voxel of the
-tile, so its floor and the eight trilinear weights are scalars.
+tile, so its floor and the eight trilinear weights are scalars. The march reads
+from four copies of the padded volume shifted by 0-3 voxels along ``w``, so that
+every read starts 16-byte aligned and loads four voxels per instruction (see
+:class:`Launch` for the instruction counts this was chosen by).
 
 Reverse mode keeps the recompute-instead-of-store scheme of the XLA VJP, one
 direction at a time, in three kernels:
@@ -30,11 +33,13 @@ direction at a time, in three kernels:
    reads, but Pallas' interpreter, which the CPU tests use, does not emulate
    partly out-of-bounds windows).
 
-Memory in reverse mode, in volumes of the (tile-rounded) input: $\sqrt M$ chunk
-starts, the $g$ buffer of one chunk ($\sqrt M$ volumes each grown by the padding,
-$(n + 2p)^3 / n^3$ of one: about 1.7 at $512^3$ with $R = 50$, but 27 when the
-padding is the whole extent, i.e. a traced radius without ``max_radius``) and about
-six carried volumes, for any $L$.
+Memory, in volumes of the (tile-rounded) input: the forward holds the four
+shifted copies of the padded volume, $4 (n + 2p)^3 / n^3$ (5.8 at $256^3$ with
+$R = 16$), and the output. Reverse mode holds the copies, $\sqrt M$ chunk
+starts, the $g$ buffer of one chunk ($\sqrt M$ volumes each grown by the
+padding, $(n + 2p)^3 / n^3$ of one: about 1.7 at $512^3$ with $R = 50$, but 27
+when the padding is the whole extent, i.e. a traced radius without
+``max_radius``) and about six carried volumes, for any $L$.
 
 When lowered for CUDA the kernels are compiled by Triton; on any other platform
 they run in Pallas' interpreter (exact, slow), which is how the test suite checks
@@ -48,6 +53,7 @@ division); half-precision inputs are promoted and the result cast back.
 import functools
 import math
 from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -58,16 +64,39 @@ from .lao import _CORNERS, _chunking, _corner_slopes, _corner_weights
 
 
 class Launch(NamedTuple):
-    """How the kernels are launched: the tile ``(d, h, w)`` of voxels one program
-    marches (powers of two) and the Triton ``num_warps`` per program."""
+    """How the kernels are launched.
 
-    tile: tuple[int, int, int] = (2, 8, 32)
+    ``tile`` is the ``(d, h, w)`` block of voxels one program owns (powers of two),
+    ``cotangent_tile`` the same for the reverse-mode cotangent kernel (smaller: it
+    holds a chunk of samples in registers), ``num_warps`` Triton's warps per
+    program, and ``vector`` the number of copies of the padded opacity, shifted by
+    ``0 .. vector - 1`` voxels along ``w``, that the march reads (1: the padded
+    opacity itself). With ``vector = 4`` each window read
+    starts at a multiple of 4 voxels of one copy, so Triton loads four voxels (16
+    bytes) per instruction, at the price of four padded volumes in memory.
+
+    Compiled by Triton 3.6 for sm_90a (H100/H200; ``python -m benchmarks.run
+    pallas_sass``), one sample of one voxel of the forward march takes 27
+    instructions with the default launch against 49 with tile ``(2, 8, 32)`` and
+    ``vector = 1``, with no register spills; the reverse-mode kernels take 30
+    (chunk starts), 68 (cotangents, 130 registers) and 39 (adjoint) without opacity
+    correction. With opacity correction, whose derivative needs about twice the
+    registers, the cotangent kernel runs on tiles of half the depth of
+    ``cotangent_tile`` (255 registers, 4 bytes spilled, against 1460 bytes at the
+    full depth). Timings need a GPU: ``python -m benchmarks.run lao_pallas``.
+    """
+
+    tile: tuple[int, int, int] = (4, 8, 32)
+    cotangent_tile: tuple[int, int, int] = (2, 8, 32)
     num_warps: int = 4
+    vector: int = 4
 
 
-#: The default launch is not yet tuned on a GPU; ``benchmarks/gpu.py`` times these.
-LAUNCHES = (Launch(), Launch((4, 8, 32), 4), Launch((4, 8, 32), 8), Launch((1, 8, 64), 4),
-            Launch((2, 4, 32), 2), Launch((4, 16, 32), 8))
+#: The launches ``python -m benchmarks.run lao_pallas`` times (forward).
+LAUNCHES = (Launch(), Launch(tile=(2, 8, 32)), Launch(tile=(4, 8, 64)),
+            Launch(num_warps=8), Launch(tile=(2, 8, 32), vector=1),
+            Launch(tile=(4, 8, 32), vector=1))
+
 
 def _tiling(shape, tile):
     """The tile actually used (no larger than the volume's power-of-two cover), the
@@ -123,14 +152,18 @@ def adjoint_start(origin, pad, shift, corner):
     return origin + 2 * pad - jnp.clip(pad + shift + corner, 0, 2 * pad)
 
 
-def _windows(ref, origin, pad, tile, shift, start=window_start, lead=()):
-    """The eight tile-sized windows of ``ref`` (after the ``lead`` indices) that the
-    corners of a sample shifted by ``shift`` touch."""
+def _windows(ref, origin, pad, tile, shift):
+    """The eight tile-sized windows of the padded opacity that the corners of a sample
+    shifted by ``shift`` touch, read from ``ref``, its ``vector`` shifted copies
+    (:func:`_copies`): a window starting at ``w`` is read from copy ``w % vector``
+    at ``w - w % vector``, an aligned start."""
+    vector = ref.shape[0]
     out = []
     for corner in _CORNERS:
-        at = [start(origin[ax], pad[ax], shift[ax], corner[ax]) for ax in range(3)]
-        out.append(ref[(*lead, pl.ds(at[0], tile[0]), pl.ds(at[1], tile[1]),
-                        pl.ds(at[2], tile[2]))])
+        at = [window_start(origin[ax], pad[ax], shift[ax], corner[ax]) for ax in range(3)]
+        copy = at[2] % vector
+        out.append(ref[copy, pl.ds(at[0], tile[0]), pl.ds(at[1], tile[1]),
+                       pl.ds(pl.multiple_of(at[2] - copy, vector), tile[2])])
     return out
 
 
@@ -167,23 +200,31 @@ def _forward_kernel(params_ref, source_ref, out_ref, *, pad, tile, samples, n_di
         weight = params_ref[2 + 4 * l + 3]
 
         def sample_body(i, carry):
-            transmittance, occlusion = carry
+            transmittance, transmitted = carry
             step, frac, shift = _position(radius, offset, samples, i, direction)
             alpha = _blend(_weights(frac), _windows(source_ref, origin, pad, tile, shift))
-            transmittance = transmittance * (1 - _opacity(alpha, step, correction))
-            return transmittance, occlusion + (1 - transmittance)
+            # one fused multiply-add each: T_{i+1} = T_i - T_i alpha'_i, sum of T_{i+1}
+            transmittance = transmittance - transmittance * _opacity(alpha, step, correction)
+            return transmittance, transmitted + transmittance
 
         zeros = jnp.zeros(tile, dtype)
-        _, occlusion = lax.fori_loop(0, samples - 1, sample_body, (zeros + 1, zeros))
-        return total + weight * occlusion
+        _, transmitted = lax.fori_loop(0, samples - 1, sample_body, (zeros + 1, zeros))
+        # occ_l = sum_i (1 - T_{i+1}) over the M - 1 samples
+        return total + weight * ((samples - 1) - transmitted)
 
     out_ref[...] = lax.fori_loop(0, n_dirs, direction_body, jnp.zeros(tile, dtype))
 
 
-def _source(alpha, pad, out_shape):
-    """``alpha`` zero-padded by ``pad`` in front and up to ``out_shape + pad`` behind."""
-    return jnp.pad(alpha, tuple((p, p + o - s) for p, o, s
-                                in zip(pad, out_shape, alpha.shape, strict=True)))
+def _copies(alpha, pad, out_shape, vector):
+    """``(vector, ...)``: ``alpha`` zero-padded by ``pad`` in front and up to
+    ``out_shape + pad`` behind, and shifted by ``r`` voxels along ``w`` in copy
+    ``r`` (copy ``r`` at ``w`` holds the padded opacity at ``w + r``); the ``w``
+    extent is rounded up to a multiple of ``vector``."""
+    padded = jnp.pad(alpha, tuple((p, p + o - s) for p, o, s
+                                  in zip(pad, out_shape, alpha.shape, strict=True)))
+    width = -(-padded.shape[2] // vector) * vector
+    padded = jnp.pad(padded, ((0, 0), (0, 0), (0, width + vector - 1 - padded.shape[2])))
+    return jnp.stack([padded[:, :, r:r + width] for r in range(vector)])
 
 
 def _forward(alpha, directions, weights, radius, offset, *, pad, samples, correction, launch,
@@ -197,7 +238,7 @@ def _forward(alpha, directions, weights, radius, offset, *, pad, samples, correc
         kernel, out_shape=jax.ShapeDtypeStruct(out_shape, alpha.dtype), grid=grid,
         in_specs=[pl.no_block_spec, pl.no_block_spec],
         out_specs=pl.BlockSpec(tile, lambda i, j, k: (i, j, k)),
-        **_compiler_params(launch, interpret))(params, _source(alpha, pad, out_shape))
+        **_compiler_params(launch, interpret))(params, _copies(alpha, pad, out_shape, launch.vector))
     return total[:alpha.shape[0], :alpha.shape[1], :alpha.shape[2]]
 
 
@@ -212,7 +253,8 @@ def _chunk_starts_kernel(params_ref, source_ref, starts_ref, occ_ref, *, pad, ti
     dtype = occ_ref.dtype
 
     def chunk_body(k, carry):
-        starts_ref[k] = carry[0]
+        starts_ref[k, pl.ds(origin[0], tile[0]), pl.ds(origin[1], tile[1]),
+                   pl.ds(origin[2], tile[2])] = carry[0]
 
         def sample_body(j, carry):
             transmittance, occlusion = carry
@@ -289,9 +331,14 @@ def _chunk_adjoint_kernel(params_ref, index_ref, g_ref, acc_in_ref, acc_ref, *, 
     total = acc_in_ref[...]
     for j in range(chunk):
         _, frac, shift = _position(radius, offset, samples, first + j, direction)
-        total = total + _blend(_weights(frac), _windows(g_ref, origin, pad, tile, shift,
-                                                        adjoint_start, lead=(j,)))
+        for corner, weight in _corner_weights(frac):
+            at = [adjoint_start(origin[ax], pad[ax], shift[ax], corner[ax]) for ax in range(3)]
+            total = total + weight * g_ref[j, pl.ds(at[0], tile[0]), pl.ds(at[1], tile[1]),
+                                           pl.ds(at[2], tile[2])]
     acc_ref[...] = total
+
+
+_BLOCK = object()  # placeholder for "this kernel's tile" in the in/out specs below
 
 
 def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, samples,
@@ -299,35 +346,43 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
     """Cotangents of ``alpha``, ``weights``, ``radius`` and ``offset``."""
     dtype = alpha.dtype
     shape = alpha.shape
-    tile, grid, out_shape = _tiling(shape, launch.tile)
+    cotangent_tile = launch.cotangent_tile
+    if correction:
+        cotangent_tile = (max(1, cotangent_tile[0] // 2), *cotangent_tile[1:])
+    _, _, out_shape = _tiling(shape, tuple(
+        max(a, b) for a, b in zip(launch.tile, cotangent_tile, strict=True)))
     n_chunks, chunk = _chunking(samples - 1)
-    source = _source(alpha, pad, out_shape)
+    source = _copies(alpha, pad, out_shape, launch.vector)
     ct = jnp.pad(cotangent, tuple((0, o - s) for o, s in zip(out_shape, shape, strict=True)))
     halo = tuple(o + 2 * p for o, p in zip(out_shape, pad, strict=True))
     volume = jax.ShapeDtypeStruct(out_shape, dtype)
-    block = pl.BlockSpec(tile, lambda i, j, k: (i, j, k))
-    common = {"pad": pad, "tile": tile, "samples": samples}
-    call = functools.partial(pl.pallas_call, grid=grid,
-                             **_compiler_params(launch, interpret))
 
+    def call(kernel, tile, **kwargs):
+        """``pallas_call`` of ``kernel`` over ``out_shape`` in tiles of ``tile``."""
+        tile, grid, _ = _tiling(out_shape, tile)
+        block = pl.BlockSpec(tile, lambda i, j, k: (i, j, k))
+        specs = {name: tuple(block if spec is _BLOCK else spec for spec in kwargs.pop(name))
+                 for name in ("in_specs", "out_specs")}
+        kernel = functools.partial(kernel, pad=pad, tile=tile, samples=samples)
+        return pl.pallas_call(kernel, grid=grid, **specs, **kwargs,
+                              **_compiler_params(launch, interpret))
+
+    whole = pl.no_block_spec
     starts_call = call(
         functools.partial(_chunk_starts_kernel, n_chunks=n_chunks, chunk=chunk,
-                          correction=correction, **common),
+                          correction=correction), launch.tile,
         out_shape=(jax.ShapeDtypeStruct((n_chunks, *out_shape), dtype), volume),
-        in_specs=[pl.no_block_spec, pl.no_block_spec],
-        out_specs=(pl.BlockSpec((n_chunks, *tile), lambda i, j, k: (0, i, j, k)), block))
+        in_specs=[whole, whole], out_specs=[whole, _BLOCK])
     cotangents_call = call(
-        functools.partial(_chunk_cotangents_kernel, chunk=chunk, correction=correction,
-                          **common),
+        functools.partial(_chunk_cotangents_kernel, chunk=chunk, correction=correction),
+        cotangent_tile,
         out_shape=(volume, jax.ShapeDtypeStruct((chunk, *halo), dtype), volume, volume),
-        in_specs=[pl.no_block_spec, pl.no_block_spec, pl.no_block_spec, pl.no_block_spec,
-                  block, block, pl.no_block_spec, block, block],
-        out_specs=(block, pl.no_block_spec, block, block),
-        input_output_aliases={6: 1, 7: 2, 8: 3})
+        in_specs=[whole, whole, whole, whole, _BLOCK, _BLOCK, whole, _BLOCK, _BLOCK],
+        out_specs=[_BLOCK, whole, _BLOCK, _BLOCK], input_output_aliases={6: 1, 7: 2, 8: 3})
     adjoint_call = call(
-        functools.partial(_chunk_adjoint_kernel, chunk=chunk, **common),
-        out_shape=volume, in_specs=[pl.no_block_spec, pl.no_block_spec, pl.no_block_spec, block],
-        out_specs=block, input_output_aliases={3: 0})
+        functools.partial(_chunk_adjoint_kernel, chunk=chunk), launch.tile,
+        out_shape=(volume,), in_specs=[whole, whole, whole, _BLOCK], out_specs=[_BLOCK],
+        input_output_aliases={3: 0})
 
     def direction_bwd(carry, direction_weight):
         d_alpha, acc_slope, acc_radius, g = carry
@@ -340,7 +395,7 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
             index = jnp.reshape(k, (1,)).astype(jnp.int32)
             suffix, g, acc_slope, acc_radius = cotangents_call(
                 params, index, source, starts, suffix, ct, g, acc_slope, acc_radius)
-            d_alpha = adjoint_call(params, index, g, d_alpha)
+            (d_alpha,) = adjoint_call(params, index, g, d_alpha)
             return (suffix, g, d_alpha, acc_slope, acc_radius), None
 
         state = (jnp.zeros(out_shape, dtype), g, d_alpha, acc_slope, acc_radius)
