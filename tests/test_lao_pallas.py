@@ -282,3 +282,21 @@ def test_half_precision_lowers_to_triton():
 
     for dtype in (jnp.bfloat16, jnp.float16):
         assert _export_for_cuda(f, jax.ShapeDtypeStruct((8, 8, 8), dtype)) == 1
+
+
+def test_scene_renders_with_the_pallas_march():
+    """A scene's LAO ambient term through the Pallas kernels renders as through the
+    XLA march (the Module's gradients: test_module_and_filter_grad)."""
+    from volshade import Camera, Scene, render
+    from volshade.transfer import preset
+
+    vol = _alpha((8, 9, 10), 6)
+    cam = Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(4, 4))
+
+    def image(implementation):
+        params = LocalAmbientOcclusion(3.0, offset=0.5, directions=6, samples=4,
+                                       implementation=implementation)
+        return eqx.filter_jit(render)(Scene(volume=vol, transfer=preset("grey"),
+                                            ambient="lao", lao=params, shading="phong"), cam)
+
+    np.testing.assert_allclose(image("pallas"), image("xla"), rtol=0, atol=1e-13)
