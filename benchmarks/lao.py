@@ -325,7 +325,7 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
             rows.append({"case": f"pallas forward {launch}", "error": repr(err)[:300]})
             continue
         timings[launch] = t["median_s"]
-        rows.append({"case": f"pallas forward tile {launch.tile} warps {launch.num_warps}",
+        rows.append({"case": f"pallas forward {launch}",
                      "median_s": t["median_s"], "compile_s": t["first_call_s"] - t["median_s"],
                      "Gsamples_per_s": work / t["median_s"] / 1e9})
         if best is None or t["median_s"] < timings[best]:
@@ -353,10 +353,10 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
         except Exception as err:  # noqa: BLE001 - as above
             rows.append({"case": f"pallas forward+grad {launch}", "error": repr(err)[:300]})
             continue
-        rows.append({"case": f"pallas forward+grad(alpha, radius), tile {launch.tile} warps "
-                             f"{launch.num_warps}", "median_s": t_b["median_s"],
+        rows.append({"case": f"pallas forward+grad(alpha, radius) {launch}",
+                     "median_s": t_b["median_s"],
                      "compile_s": t_b["first_call_s"] - t_b["median_s"]})
-        ratios[f"pallas_forward_plus_grad_over_forward {launch.tile} {launch.num_warps}"] = (
+        ratios[f"pallas_forward_plus_grad_over_forward {launch}"] = (
             t_b["median_s"] / timings[launch])
         both = fn
     if both is None:

@@ -15,10 +15,12 @@ Triton IR with the ``triton`` package for sm_90a, and reads ``ptxas -v`` and the
   voxels a thread owns (and the chunk's samples);
 * the load instructions by width (``LDG.E.128`` loads four voxels).
 
-A static measure, not a timing: it shows where instructions go (an H100 issues
-about 4 x 32 per multiprocessor and clock, so 27 instructions a sample bound the
-forward near 2.5 T samples/s; its L1 moves 128 bytes a clock, 32 bytes a sample,
-about 1 T/s). Needs ``pip install triton`` and a jaxlib that embeds Triton IR in
+A static measure, not a timing: it shows where instructions go. For scale (from the
+published peaks, not measured): an H100 SXM issues 4 x 32 thread instructions per
+multiprocessor and clock (132 of them at 1.98 GHz), so 28 instructions a sample
+bound the forward near 1.2 T samples/s, and its L1 delivers 128 bytes per
+multiprocessor and clock while a sample reads 32 (eight corners of four bytes),
+about 1.05 T/s: both limits sit near issue 3's goal of 1 T/s. Needs ``pip install triton`` and a jaxlib that embeds Triton IR in
 its custom call (0.10.2 here; later ones compile while lowering, on a GPU).
 """
 

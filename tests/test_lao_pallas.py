@@ -64,6 +64,26 @@ def test_values_match_xla_march_and_gather_reference(case):
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("scale", [0.001, 0.3])
+def test_float32_with_many_samples_matches_the_float64_reference(scale):
+    """Many samples of nearly transparent (or half-opaque) voxels: float32 rounding
+    must not accumulate over the march (summing the transmittances would, 2e-6)."""
+    alpha = jnp.asarray(np.random.default_rng(4).uniform(0, scale, (6, 7, 9)), jnp.float32)
+    dirs = vdirs.fibonacci(3)
+    out = lao(alpha, directions=dirs, radius=5.0, samples=200, implementation="pallas")
+    ref = lao_reference(alpha.astype(jnp.float64), dirs, 5.0, 1.0, 200)
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-6)
+
+
+def test_bad_launch():
+    for launch in (pallas.Launch(cotangent_tile=(3, 8, 32)), pallas.Launch(vector=0),
+                   pallas.Launch(num_warps=3), pallas.Launch(tile=(4, 8))):
+        with pytest.raises(ValueError, match="powers of"):
+            pallas.occlusion_sum(jnp.zeros((4, 4, 4)), vdirs.fibonacci(2), jnp.ones(2), 2.0,
+                                 1.0, pad=(3, 3, 3), samples=4, correction=False,
+                                 launch=launch)
+
+
 def test_float32_matches_gather_reference():
     alpha, radius, offset, _ = _inputs(0, jnp.float32)
     dirs = vdirs.fibonacci(5)
@@ -121,7 +141,10 @@ def launch_reference():
     return (alpha, radius, ct), jax.value_and_grad(xla, argnums=(0, 1))(alpha, radius)
 
 
-@pytest.mark.parametrize("launch", pallas.LAUNCHES)
+@pytest.mark.parametrize("launch", (*pallas.LAUNCHES,
+                                    pallas.Launch(tile=(1, 8, 32), cotangent_tile=(4, 8, 32)),
+                                    pallas.Launch(tile=(4, 4, 4), cotangent_tile=(1, 1, 1),
+                                                  vector=8)))
 def test_every_launch_computes_the_same(launch, launch_reference):
     """Tiles, warps and the shifted copies (``vector``) change how the kernels run,
     not what they compute; the volume is smaller than some tiles and not a multiple

@@ -75,10 +75,11 @@ class Launch(NamedTuple):
     starts at a multiple of 4 voxels of one copy, so Triton loads four voxels (16
     bytes) per instruction, at the price of four padded volumes in memory.
 
-    Compiled by Triton 3.6 for sm_90a (H100/H200; ``python -m benchmarks.run
-    pallas_sass``), one sample of one voxel of the forward march takes 27
-    instructions with the default launch against 49 with tile ``(2, 8, 32)`` and
-    ``vector = 1``, with no register spills; the reverse-mode kernels take 30
+    The Triton IR of jaxlib 0.10.2 compiled by Triton 3.6 for sm_90a (H100/H200;
+    ``python -m benchmarks.run pallas_sass``; another jaxlib and Triton may differ
+    somewhat): one sample of one voxel of the forward march takes 28 instructions
+    with the default launch against 49 with tile ``(2, 8, 32)`` and ``vector = 1``,
+    with no register spills in the sample loop; the reverse-mode kernels take 30
     (chunk starts), 68 (cotangents, 130 registers) and 39 (adjoint) without opacity
     correction. With opacity correction, whose derivative needs about twice the
     registers, the cotangent kernel runs on tiles of half the depth of
@@ -96,6 +97,20 @@ class Launch(NamedTuple):
 LAUNCHES = (Launch(), Launch(tile=(2, 8, 32)), Launch(tile=(4, 8, 64)),
             Launch(num_warps=8), Launch(tile=(2, 8, 32), vector=1),
             Launch(tile=(4, 8, 32), vector=1))
+
+
+def _check_launch(launch: Launch) -> None:
+    """Tiles of powers of two (Triton's tensors must be, and the shared tile-rounded
+    shape of the reverse-mode kernels is a multiple of every tile only then),
+    ``num_warps`` a power of two, ``vector >= 1``."""
+    def power_of_two(n):
+        return isinstance(n, int) and n >= 1 and n & (n - 1) == 0
+
+    if not (all(power_of_two(t) for t in (*launch.tile, *launch.cotangent_tile))
+            and len(launch.tile) == len(launch.cotangent_tile) == 3
+            and power_of_two(launch.num_warps) and power_of_two(launch.vector)):
+        raise ValueError(f"volshade._lao_pallas: {launch} needs tiles of three powers of "
+                         f"two and a power-of-two `num_warps` and `vector`.")
 
 
 def _tiling(shape, tile):
@@ -199,18 +214,16 @@ def _forward_kernel(params_ref, source_ref, out_ref, *, pad, tile, samples, n_di
         direction = [params_ref[2 + 4 * l + ax] for ax in range(3)]
         weight = params_ref[2 + 4 * l + 3]
 
-        def sample_body(i, carry):
-            transmittance, transmitted = carry
-            step, frac, shift = _position(radius, offset, samples, i, direction)
+        def sample_body(i, horner):
+            # back to front, the Horner form of eq. 3 (as the XLA march):
+            # H_i = H_{i+1} + 1 - alpha'_i H_{i+1}, H_{M-1} = 1, occ_l = M - H_0; summing
+            # the T_i instead would lose float32 precision where they are all near 1
+            step, frac, shift = _position(radius, offset, samples, samples - 2 - i, direction)
             alpha = _blend(_weights(frac), _windows(source_ref, origin, pad, tile, shift))
-            # one fused multiply-add each: T_{i+1} = T_i - T_i alpha'_i, sum of T_{i+1}
-            transmittance = transmittance - transmittance * _opacity(alpha, step, correction)
-            return transmittance, transmitted + transmittance
+            return (horner + 1) - _opacity(alpha, step, correction) * horner
 
-        zeros = jnp.zeros(tile, dtype)
-        _, transmitted = lax.fori_loop(0, samples - 1, sample_body, (zeros + 1, zeros))
-        # occ_l = sum_i (1 - T_{i+1}) over the M - 1 samples
-        return total + weight * ((samples - 1) - transmitted)
+        horner = lax.fori_loop(0, samples - 1, sample_body, jnp.ones(tile, dtype))
+        return total + weight * (samples - horner)
 
     out_ref[...] = lax.fori_loop(0, n_dirs, direction_body, jnp.zeros(tile, dtype))
 
@@ -455,6 +468,7 @@ def occlusion_sum(alpha, directions, weights, radius, offset, *, pad, samples: i
     ``samples`` must be at least 2. Differentiable in ``alpha``, ``weights``,
     ``radius`` and ``offset`` (``directions`` get a zero cotangent). Computed in
     float32 at least and returned in the dtype of ``alpha``."""
+    _check_launch(launch)
     work = jnp.promote_types(alpha.dtype, jnp.float32)
     total = _occlusion_sum(pad, samples, correction, launch,
                            *(jnp.asarray(x).astype(work)
