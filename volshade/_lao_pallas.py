@@ -47,7 +47,10 @@ them against the XLA march on a CPU (``lax.platform_dependent`` chooses, so a
 computation placed on the CPU of a GPU machine is interpreted too). Tile shapes are
 powers of two (a Triton requirement); the volume is padded up to whole tiles and
 cropped. The kernels compute in float32 at least (Triton has no half-precision
-division); half-precision inputs are promoted and the result cast back.
+division); half-precision inputs are promoted and the result cast back. JAX 0.11
+deprecates Pallas' Triton backend in favour of Mosaic GPU (Hopper and newer); these
+kernels use only tiles, dynamic slices and scalar loops, which a Mosaic GPU port
+would keep.
 """
 
 import functools
