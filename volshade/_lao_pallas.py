@@ -23,9 +23,9 @@ direction at a time, in three kernels:
 2. ``_chunk_cotangents`` (chunks in reverse): reload the chunk's samples and
    their slopes along the ray, rebuild $T_i$ from the stored start, sweep back
    with the suffix sums $S_i$ and write $g_i = \bar o\, \hat w_l\, v_i T_i S_i$
-   (through the opacity correction) for each sample of the chunk; accumulate
-   the radius and offset terms $g_i\, \partial\alpha_i/\partial s\, \partial s_i/
-   \partial(R, a)$ per voxel.
+   (through the opacity correction) for each sample of the chunk; sum the radius
+   and offset terms $g_i\, \partial\alpha_i/\partial s\, \partial s_i/
+   \partial(R, a)$ over the tile (one partial sum per program).
 3. ``_chunk_adjoint``: the adjoint of a shifted read is the opposite shift, so
    $\bar\alpha(z) \mathrel{+}= \sum_i \sum_c w_c(i)\, g_i(z - n_i - c)$ is a
    gather-free stencil too. The $g_i$ live in a buffer with a zero halo as wide
@@ -39,7 +39,7 @@ $R = 16$), and the output. Reverse mode holds the copies, $\sqrt M$ chunk
 starts, the $g$ buffer of one chunk ($\sqrt M$ volumes each grown by the
 padding, $(n + 2p)^3 / n^3$ of one: about 1.7 at $512^3$ with $R = 50$, but 27
 when the padding is the whole extent, i.e. a traced radius without
-``max_radius``) and about six carried volumes, for any $L$.
+``max_radius``) and about four carried volumes, for any $L$.
 
 When lowered for CUDA the kernels are compiled by Triton; on any other platform
 they run in Pallas' interpreter (exact, slow), which is how the test suite checks
@@ -83,10 +83,10 @@ class Launch(NamedTuple):
     somewhat): one sample of one voxel of the forward march takes 28 instructions
     with the default launch against 49 with tile ``(2, 8, 32)`` and ``vector = 1``,
     with no register spills in the sample loop; the reverse-mode kernels take 30
-    (chunk starts), 68 (cotangents, 130 registers) and 39 (adjoint) without opacity
+    (chunk starts), 71 (cotangents, 127 registers) and 39 (adjoint) without opacity
     correction. With opacity correction, whose derivative needs about twice the
     registers, the cotangent kernel runs on tiles of half the depth of
-    ``cotangent_tile`` (255 registers, 4 bytes spilled, against 1460 bytes at the
+    ``cotangent_tile`` (254 registers and no spill, against 1276 bytes spilled at the
     full depth). Timings need a GPU: ``python -m benchmarks.run lao_pallas``.
     """
 
@@ -289,8 +289,8 @@ def _chunk_starts_kernel(params_ref, source_ref, starts_ref, occ_ref, *, pad, ti
 
 
 def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, starts_ref, suffix_ref, ct_ref,
-                             g_in_ref, slope_in_ref, radius_in_ref, suffix_out_ref, g_ref,
-                             slope_ref, radius_ref, *, pad, tile, samples, chunk, correction):
+                             g_in_ref, suffix_out_ref, g_ref, slope_ref, radius_ref, *, pad,
+                             tile, samples, chunk, correction):
     del g_in_ref  # aliased to g_ref: its zero halo is kept, the interior rewritten
     origin = _origin(tile)
     radius, offset = params_ref[0], params_ref[1]
@@ -313,7 +313,7 @@ def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, starts_ref, suff
         transmittance = transmittance * (1 - valid * _opacity(alpha, step, correction))
 
     suffix_next = suffix_ref[...]
-    acc_slope, acc_radius = slope_in_ref[...], radius_in_ref[...]
+    acc_slope = acc_radius = jnp.zeros(tile, dtype)
     for j in reversed(range(chunk)):
         transmittance, alpha, slope, valid, step, index = kept[j]
         suffix = valid + suffix_next
@@ -331,8 +331,10 @@ def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, starts_ref, suff
               pl.ds(origin[2] + pad[2], tile[2])] = g_alpha
         suffix_next = (1 - valid * corrected) * suffix
     suffix_out_ref[...] = suffix_next
-    slope_ref[...] = acc_slope
-    radius_ref[...] = acc_radius
+    # the radius and offset need only the totals: one partial sum per program
+    # (not two volumes read and written per chunk)
+    slope_ref[...] = jnp.sum(acc_slope, keepdims=True)
+    radius_ref[...] = jnp.sum(acc_radius, keepdims=True)
 
 
 def _chunk_adjoint_kernel(params_ref, index_ref, g_ref, acc_in_ref, acc_ref, *, pad, tile,
@@ -389,12 +391,16 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
                           correction=correction), launch.tile,
         out_shape=(jax.ShapeDtypeStruct((n_chunks, *out_shape), dtype), volume),
         in_specs=[whole, whole], out_specs=[whole, _BLOCK])
+    _, cotangent_grid, _ = _tiling(out_shape, cotangent_tile)
+    per_program = jax.ShapeDtypeStruct(cotangent_grid, dtype)
+    one = pl.BlockSpec((1, 1, 1), lambda i, j, k: (i, j, k))
     cotangents_call = call(
         functools.partial(_chunk_cotangents_kernel, chunk=chunk, correction=correction),
         cotangent_tile,
-        out_shape=(volume, jax.ShapeDtypeStruct((chunk, *halo), dtype), volume, volume),
-        in_specs=[whole, whole, whole, whole, _BLOCK, _BLOCK, whole, _BLOCK, _BLOCK],
-        out_specs=[_BLOCK, whole, _BLOCK, _BLOCK], input_output_aliases={6: 1, 7: 2, 8: 3})
+        out_shape=(volume, jax.ShapeDtypeStruct((chunk, *halo), dtype), per_program,
+                   per_program),
+        in_specs=[whole, whole, whole, whole, _BLOCK, _BLOCK, whole],
+        out_specs=[_BLOCK, whole, one, one], input_output_aliases={6: 1})
     adjoint_call = call(
         functools.partial(_chunk_adjoint_kernel, chunk=chunk), launch.tile,
         out_shape=(volume,), in_specs=[whole, whole, whole, _BLOCK], out_specs=[_BLOCK],
@@ -409,22 +415,22 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
         def chunk_bwd(state, k):
             suffix, g, d_alpha, acc_slope, acc_radius = state
             index = jnp.reshape(k, (1,)).astype(jnp.int32)
-            suffix, g, acc_slope, acc_radius = cotangents_call(
-                params, index, source, starts, suffix, ct, g, acc_slope, acc_radius)
+            suffix, g, slope, radius_part = cotangents_call(
+                params, index, source, starts, suffix, ct, g)
             (d_alpha,) = adjoint_call(params, index, g, d_alpha)
-            return (suffix, g, d_alpha, acc_slope, acc_radius), None
+            return (suffix, g, d_alpha, acc_slope + jnp.sum(slope),
+                    acc_radius + jnp.sum(radius_part)), None
 
         state = (jnp.zeros(out_shape, dtype), g, d_alpha, acc_slope, acc_radius)
         (_, g, d_alpha, acc_slope, acc_radius), _ = lax.scan(
             chunk_bwd, state, jnp.arange(n_chunks), reverse=True)
         return (d_alpha, acc_slope, acc_radius, g), jnp.sum(ct * occlusion)
 
-    zeros = jnp.zeros(out_shape, dtype)
-    init = (zeros, zeros, zeros, jnp.zeros((chunk, *halo), dtype))
-    (d_alpha, acc_slope, acc_radius, _), d_weights = lax.scan(
+    zero = jnp.zeros((), dtype)
+    init = (jnp.zeros(out_shape, dtype), zero, zero, jnp.zeros((chunk, *halo), dtype))
+    (d_alpha, d_slope, d_radius, _), d_weights = lax.scan(
         direction_bwd, init, (directions, weights))
-    d_radius = jnp.sum(acc_radius)
-    d_offset = jnp.sum(acc_slope) - d_radius
+    d_offset = d_slope - d_radius
     return (d_alpha[:shape[0], :shape[1], :shape[2]], d_weights, d_radius, d_offset)
 
 
