@@ -12,7 +12,9 @@ is written once. The sample offset $s_i l$ is the same for every voxel of the
 tile, so its floor and the eight trilinear weights are scalars. The march reads
 from four copies of the padded volume shifted by 0-3 voxels along ``w``, so that
 every read starts 16-byte aligned and loads four voxels per instruction (see
-:class:`Launch` for the instruction counts this was chosen by).
+:class:`Launch` for the instruction counts this was chosen by). With bricks (the
+``brick_size`` of :func:`volshade.lao.lao`), a tile whose bricks have no opacity
+within reach is not marched, by the XLA path's criterion, so no value changes.
 
 Reverse mode keeps the recompute-instead-of-store scheme of the XLA VJP, one
 direction at a time, in three kernels:
@@ -59,11 +61,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jax.experimental import pallas as pl
 
 from ._numerics import correct_opacity
-from .lao import _CORNERS, _chunking, _corner_slopes, _corner_weights
+from .lao import _CORNERS, _active_bricks, _chunking, _corner_slopes, _corner_weights
 
 
 class Launch(NamedTuple):
@@ -80,7 +83,7 @@ class Launch(NamedTuple):
 
     The Triton IR of jaxlib 0.10.2 compiled by Triton 3.6 for sm_90a (H100/H200;
     ``python -m benchmarks.run pallas_sass``; another jaxlib and Triton may differ
-    somewhat): one sample of one voxel of the forward march takes 28 instructions
+    somewhat): one sample of one voxel of the forward march takes 27 instructions
     with the default launch against 49 with tile ``(2, 8, 32)`` and ``vector = 1``,
     with no register spills in the sample loop; the reverse-mode kernels take 30
     (chunk starts), 71 (cotangents, 127 registers) and 39 (adjoint) without opacity
@@ -207,8 +210,8 @@ def _opacity(value, step, correction):
 # --------------------------------------------------------------------------- forward
 
 
-def _forward_kernel(params_ref, source_ref, out_ref, *, pad, tile, samples, n_dirs,
-                    correction):
+def _forward_kernel(params_ref, active_ref, source_ref, out_ref, *, pad, tile, samples,
+                    n_dirs, correction):
     origin = _origin(tile)
     radius, offset = params_ref[0], params_ref[1]
     dtype = out_ref.dtype
@@ -228,7 +231,12 @@ def _forward_kernel(params_ref, source_ref, out_ref, *, pad, tile, samples, n_di
         horner = lax.fori_loop(0, samples - 1, sample_body, jnp.ones(tile, dtype))
         return total + weight * (samples - horner)
 
-    out_ref[...] = lax.fori_loop(0, n_dirs, direction_body, jnp.zeros(tile, dtype))
+    def march():
+        return lax.fori_loop(0, n_dirs, direction_body, jnp.zeros(tile, dtype))
+
+    # a tile with no opacity within reach is not marched: its occlusion is exactly 0
+    active = active_ref[pl.program_id(0), pl.program_id(1), pl.program_id(2)]
+    out_ref[...] = lax.cond(active != 0, march, lambda: jnp.zeros(tile, dtype))
 
 
 def _copies(alpha, pad, out_shape, vector):
@@ -243,8 +251,26 @@ def _copies(alpha, pad, out_shape, vector):
     return jnp.stack([padded[:, :, r:r + width] for r in range(vector)])
 
 
+def _active_tiles(alpha, pad, brick, tile, grid):
+    """``(grid)`` int32: 1 for the tiles to march. Without ``brick`` every tile; with
+    it, the tiles that touch a brick with opacity within ``pad`` voxels
+    (:func:`volshade.lao._active_bricks`, the XLA path's criterion), so skipping
+    never changes a value."""
+    if brick is None:
+        return jnp.ones(grid, jnp.int32)
+    bricks = _active_bricks(alpha, pad, brick).astype(jnp.int32)
+    touches = []
+    for ax in range(3):
+        # tile t covers voxels [t tile, (t + 1) tile - 1], bricks of those // brick
+        t = np.arange(grid[ax])[:, None]
+        b = np.arange(bricks.shape[ax])[None, :]
+        touches.append(jnp.asarray((b >= t * tile[ax] // brick)
+                                   & (b <= ((t + 1) * tile[ax] - 1) // brick), jnp.int32))
+    return (jnp.einsum("ia,jb,kc,abc->ijk", *touches, bricks) > 0).astype(jnp.int32)
+
+
 def _forward(alpha, directions, weights, radius, offset, *, pad, samples, correction, launch,
-             interpret):
+             brick, interpret):
     tile, grid, out_shape = _tiling(alpha.shape, launch.tile)
     params = _pack(radius, offset, jnp.concatenate([directions, weights[:, None]], 1),
                    dtype=alpha.dtype)
@@ -252,9 +278,11 @@ def _forward(alpha, directions, weights, radius, offset, *, pad, samples, correc
                                n_dirs=directions.shape[0], correction=correction)
     total = pl.pallas_call(
         kernel, out_shape=jax.ShapeDtypeStruct(out_shape, alpha.dtype), grid=grid,
-        in_specs=[pl.no_block_spec, pl.no_block_spec],
+        in_specs=[pl.no_block_spec, pl.no_block_spec, pl.no_block_spec],
         out_specs=pl.BlockSpec(tile, lambda i, j, k: (i, j, k)),
-        **_compiler_params(launch, interpret))(params, _copies(alpha, pad, out_shape, launch.vector))
+        **_compiler_params(launch, interpret))(
+            params, _active_tiles(alpha, pad, brick, tile, grid),
+            _copies(alpha, pad, out_shape, launch.vector))
     return total[:alpha.shape[0], :alpha.shape[1], :alpha.shape[2]]
 
 
@@ -443,22 +471,25 @@ def _on_platform(fn, *args):
                                   default=functools.partial(fn, interpret=True))
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3))
-def _occlusion_sum(pad, samples, correction, launch, alpha, directions, weights, radius,
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3, 4))
+def _occlusion_sum(pad, samples, correction, launch, brick, alpha, directions, weights, radius,
                    offset):
     forward = functools.partial(_forward, pad=pad, samples=samples, correction=correction,
-                                launch=launch)
+                                launch=launch, brick=brick)
     return _on_platform(forward, alpha, directions, weights, radius, offset)
 
 
-def _occlusion_sum_fwd(pad, samples, correction, launch, alpha, directions, weights, radius,
-                       offset):
-    out = _occlusion_sum(pad, samples, correction, launch, alpha, directions, weights, radius,
-                         offset)
+def _occlusion_sum_fwd(pad, samples, correction, launch, brick, alpha, directions, weights,
+                       radius, offset):
+    out = _occlusion_sum(pad, samples, correction, launch, brick, alpha, directions, weights,
+                         radius, offset)
     return out, (alpha, directions, weights, radius, offset)
 
 
-def _occlusion_sum_bwd(pad, samples, correction, launch, residuals, cotangent):
+def _occlusion_sum_bwd(pad, samples, correction, launch, brick, residuals, cotangent):
+    # every voxel's gradient is computed (a skipped tile's AO still depends on the
+    # opacity around it), so ``brick`` does not enter
+    del brick
     alpha, directions, weights, radius, offset = residuals
     backward = functools.partial(_backward, pad=pad, samples=samples, correction=correction,
                                  launch=launch)
@@ -471,15 +502,17 @@ _occlusion_sum.defvjp(_occlusion_sum_fwd, _occlusion_sum_bwd)
 
 
 def occlusion_sum(alpha, directions, weights, radius, offset, *, pad, samples: int,
-                  correction: bool, launch: Launch = Launch()):
+                  correction: bool, launch: Launch = Launch(), brick: int | None = None):
     r"""$\sum_l \hat w_l\, occ_l$ for the opacity volume ``alpha`` (unpadded), as
     :func:`volshade.lao._occlusion_sum` computes it for the source padded by ``pad``;
     ``samples`` must be at least 2. Differentiable in ``alpha``, ``weights``,
     ``radius`` and ``offset`` (``directions`` get a zero cotangent). Computed in
-    float32 at least and returned in the dtype of ``alpha``."""
+    float32 at least and returned in the dtype of ``alpha``. With ``brick`` the
+    forward skips the tiles whose bricks of that edge have no opacity within ``pad``
+    voxels (their sum is 0); the gradient is computed everywhere."""
     _check_launch(launch)
     work = jnp.promote_types(alpha.dtype, jnp.float32)
-    total = _occlusion_sum(pad, samples, correction, launch,
+    total = _occlusion_sum(pad, samples, correction, launch, brick,
                            *(jnp.asarray(x).astype(work)
                              for x in (alpha, directions, weights, radius, offset)))
     return total.astype(alpha.dtype)

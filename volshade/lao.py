@@ -623,9 +623,11 @@ def lao(
             every ray of a tile of voxels in registers, forward and in reverse mode
             (``volshade._lao_pallas``), compiled by Triton on an NVIDIA GPU and run
             in Pallas' interpreter elsewhere (exact but slow: for tests). Both
-            compute the same values and gradients (to rounding). ``"pallas"`` has not yet
-            been timed on a GPU, hence not the default; it does not combine with
-            ``brick_size``.
+            compute the same values and gradients (to rounding). With ``brick_size``
+            the Pallas march skips every tile of voxels whose bricks have no opacity
+            within reach (always, where the XLA march first weighs the active
+            fraction); its gradient is computed everywhere. ``"pallas"`` has not yet
+            been timed on a GPU, hence not the default.
 
     Returns:
         ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``alpha``.
@@ -634,7 +636,7 @@ def lao(
         ValueError: ``alpha`` not 3-D, bad ``directions``/``weights`` shape, empty
             direction set, ``samples < 1``, ``brick_size < 1``, ``radius <= offset``
             or ``offset < 0`` (at trace time when they are numbers), an unknown
-            ``implementation`` or ``"pallas"`` with ``brick_size``.
+            ``implementation``.
         TypeError: non-numeric inputs.
         equinox.EquinoxRuntimeError: at run time for traced values: ``alpha``
             outside ``[0, 1]`` or non-finite, ``radius <= offset``, ``offset < 0``,
@@ -666,9 +668,6 @@ def lao(
     if implementation not in _IMPLEMENTATIONS:
         raise ValueError(f"{_WHERE}: `implementation` must be one of {_IMPLEMENTATIONS}, "
                          f"got {implementation!r}.")
-    if implementation == "pallas" and brick_size is not None:
-        raise ValueError(f"{_WHERE}: `brick_size` applies to the XLA march only; with "
-                         f"`implementation='pallas'` pass `brick_size=None`.")
     dirs = lax.stop_gradient(_directions_array(directions, dtype))
     n_dirs = dirs.shape[0]
 
@@ -732,7 +731,8 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
         from . import _lao_pallas
 
         total = _lao_pallas.occlusion_sum(alpha, dirs, weights, radius, offset, pad=pad,
-                                          samples=samples, correction=correction)
+                                          samples=samples, correction=correction,
+                                          brick=brick_size)
         return 1 - total / samples
 
     def march(source, shape):
