@@ -292,7 +292,8 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     """``implementation="pallas"`` on the issue's GPU case, against the XLA march in the
     same run: forward time per launch (tile, warps) in ``volshade._lao_pallas.LAUNCHES``,
     then forward + gradient w.r.t. opacity and radius with the default launch and the
-    fastest, and the largest difference from the XLA march (values and gradients). A
+    fastest, the largest difference from the XLA march (values and gradients), and
+    empty-space skipping on a sparse ball of half the edge (``_pallas_bricks``). A
     launch that fails to compile is recorded with its error and skipped (a fault on
     the device ends the process: run this before the other GPU cases). On a CPU the
     kernels run in Pallas' interpreter: a dry run of this script, at small sizes."""
@@ -370,5 +371,33 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     vol = alpha.size * 4
     ratios["pallas_grad_temp_over_volume"] = (
         both.lower(alpha, r).compile().memory_analysis().temp_size_in_bytes / vol)
+    rows += _pallas_bricks(n // 2, ratios, repeats)
     return {"title": "LAO Pallas on GPU", "rows": rows, "ratios": ratios,
             "device": str(jax.devices()[0])}
+
+
+def _pallas_bricks(n: int, ratios: dict, repeats: int) -> list[dict]:
+    """Empty-space skipping on a sparse ball (an eighth of the bricks within reach),
+    ``n^3``, L = 16, M = 16, R = 8, bricks of 32 (of ``n // 8`` when smaller): the
+    Pallas march without and with bricks, and the XLA march with bricks."""
+    brick = min(32, max(1, n // 8))
+    x = jnp.linspace(-1.0, 1.0, n, dtype=jnp.float32)
+    r = jnp.sqrt((x[:, None, None] - 0.4) ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)
+    ball = jnp.where(r < 0.15, 0.8, 0.0).astype(jnp.float32)
+    out, med = [], {}
+    for implementation, b in (("pallas", None), ("pallas", brick), ("xla", brick)):
+        fn = jax.jit(lambda a, i=implementation, b=b: lao(a, directions=16, radius=8.0,
+                                                          samples=16, brick_size=b,
+                                                          implementation=i))
+        try:
+            med[(implementation, b)] = time_fn(fn, ball, repeats=repeats)["median_s"]
+        except Exception as err:  # noqa: BLE001 - reported, as for the launches
+            out.append({"case": f"sparse ball {implementation} bricks {b}",
+                        "error": repr(err)[:300]})
+            continue
+        out.append({"case": f"sparse ball {n}^3 L16 M16 R8, {implementation}, bricks {b}",
+                    "median_s": med[(implementation, b)]})
+    if ("pallas", None) in med and ("pallas", brick) in med:
+        ratios["pallas_bricked_speedup_sparse_ball"] = (med[("pallas", None)]
+                                                        / med[("pallas", brick)])
+    return out
