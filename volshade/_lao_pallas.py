@@ -66,7 +66,14 @@ from jax import lax
 from jax.experimental import pallas as pl
 
 from ._numerics import correct_opacity
-from .lao import _CORNERS, _active_bricks, _chunking, _corner_slopes, _corner_weights
+from .lao import (
+    _CORNERS,
+    _active_bricks,
+    _chunking,
+    _corner_slopes,
+    _corner_weights,
+    _reverse_step,
+)
 
 
 class Launch(NamedTuple):
@@ -344,20 +351,12 @@ def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, starts_ref, suff
     acc_slope = acc_radius = jnp.zeros(tile, dtype)
     for j in reversed(range(chunk)):
         transmittance, alpha, slope, valid, step, index = kept[j]
-        suffix = valid + suffix_next
-        g_corrected = cotangent * valid * transmittance * suffix
-        if correction:
-            corrected, vjp = jax.vjp(correct_opacity, alpha, jnp.broadcast_to(step, tile))
-            g_alpha, g_ratio = vjp(g_corrected)
-            acc_radius = acc_radius + g_ratio / samples
-        else:
-            corrected, g_alpha = alpha, g_corrected
-        g_slope = g_alpha * slope
-        acc_slope = acc_slope + g_slope
-        acc_radius = acc_radius + ((index.astype(dtype) + 0.5) / samples) * g_slope
+        g_alpha, suffix_next, acc_slope, acc_radius = _reverse_step(
+            cotangent, transmittance, suffix_next, alpha, slope, valid, step,
+            (index.astype(dtype) + 0.5) / samples, acc_slope, acc_radius, samples=samples,
+            correction=correction)
         g_ref[j, pl.ds(origin[0] + pad[0], tile[0]), pl.ds(origin[1] + pad[1], tile[1]),
               pl.ds(origin[2] + pad[2], tile[2])] = g_alpha
-        suffix_next = (1 - valid * corrected) * suffix
     suffix_out_ref[...] = suffix_next
     # the radius and offset need only the totals: one partial sum per program
     # (not two volumes read and written per chunk)

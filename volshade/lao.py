@@ -263,6 +263,29 @@ def _forward_chunks(source, pad, shape, direction, distances, valid, ratio, corr
     return occlusion, starts
 
 
+def _reverse_step(cotangent, transmittance, suffix_next, alpha, slope, valid, step, coef,
+                  acc_slope, acc_radius, *, samples, correction):
+    r"""One sample of the reverse sweep (see :func:`_occlusion_sum_bwd`), shared with
+    the Pallas kernels: the cotangent $g$ of the opacity $\alpha_i$ (through the
+    opacity correction), the suffix sum carried to the previous sample, and the
+    accumulated slope and radius terms ($\partial s_i / \partial R$ = ``coef``).
+
+    Returns:
+        ``(g_alpha, suffix_next, acc_slope, acc_radius)``.
+    """
+    suffix = valid + suffix_next
+    g_corrected = cotangent * valid * transmittance * suffix
+    if correction:
+        corrected, vjp = jax.vjp(correct_opacity, alpha, jnp.broadcast_to(step, alpha.shape))
+        g_alpha, g_ratio = vjp(g_corrected)
+        acc_radius = acc_radius + g_ratio / samples
+    else:
+        corrected, g_alpha = alpha, g_corrected
+    g_slope = g_alpha * slope
+    return (g_alpha, (1 - valid * corrected) * suffix, acc_slope + g_slope,
+            acc_radius + coef * g_slope)
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3))
 def _occlusion_sum(pad, shape, correction, samples, source, directions, weights, radius,
                    offset):
@@ -330,20 +353,10 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
                 offset_vec = distance * direction
                 alpha, slope = _trilinear_shifted_with_slope(source, pad, shape, offset_vec,
                                                              direction)
-                suffix = is_valid + suffix_next
-                g_corrected = ct * is_valid * transmittance * suffix
-                if correction:
-                    corrected, vjp = jax.vjp(lambda a, r: correct_opacity(a, r), alpha,
-                                             jnp.broadcast_to(step, shape))
-                    g_alpha, g_ratio = vjp(g_corrected)
-                    acc_radius = acc_radius + g_ratio / samples
-                else:
-                    corrected, g_alpha = alpha, g_corrected
-                g_slope = g_alpha * slope
-                acc_slope = acc_slope + g_slope
-                acc_radius = acc_radius + coef * g_slope
+                g_alpha, suffix_next, acc_slope, acc_radius = _reverse_step(
+                    ct, transmittance, suffix_next, alpha, slope, is_valid, step, coef,
+                    acc_slope, acc_radius, samples=samples, correction=correction)
                 d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad, offset_vec)
-                suffix_next = (1 - is_valid * corrected) * suffix
                 return (suffix_next, d_source, acc_slope, acc_radius), None
 
             state, _ = lax.scan(sample_bwd, state, (transmittances, dists, valids, coefs),
