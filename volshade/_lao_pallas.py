@@ -84,9 +84,9 @@ class Launch(NamedTuple):
     holds a chunk of samples in registers), ``num_warps`` Triton's warps per
     program, and ``vector`` the number of copies of the padded opacity, shifted by
     ``0 .. vector - 1`` voxels along ``w``, that the march reads (1: the padded
-    opacity itself). With ``vector = 4`` each window read
-    starts at a multiple of 4 voxels of one copy, so Triton loads four voxels (16
-    bytes) per instruction, at the price of four padded volumes in memory.
+    opacity itself). With ``vector = 4`` each window read starts at a multiple of 4
+    voxels of one copy, so Triton loads four voxels (16 bytes) per instruction, at
+    the price of four padded volumes in memory.
 
     The Triton IR of jaxlib 0.10.2 compiled by Triton 3.6 for sm_90a (H100/H200;
     ``python -m benchmarks.run pallas_sass``; another jaxlib and Triton may differ
@@ -114,8 +114,8 @@ LAUNCHES = (Launch(), Launch(tile=(2, 8, 32)), Launch(tile=(4, 8, 64)),
 
 def _check_launch(launch: Launch) -> None:
     """Tiles of powers of two (Triton's tensors must be, and the shared tile-rounded
-    shape of the reverse-mode kernels is a multiple of every tile only then),
-    ``num_warps`` a power of two, ``vector >= 1``."""
+    shape of the reverse-mode kernels is a multiple of every tile only then), and
+    powers of two for ``num_warps`` and ``vector``."""
     def power_of_two(n):
         return isinstance(n, int) and n >= 1 and n & (n - 1) == 0
 
