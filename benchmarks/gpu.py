@@ -95,7 +95,7 @@ def run(quick: bool) -> dict:
 
     # LAO first: the largest case, and the device's peak memory counts from process start,
     # so its peak ratios are the LAO's own only before the other large cases run
-    from .lao import run_gpu
+    from .lao import run_gpu, sparse_ball
 
     lao_result = run_gpu(n=256 if quick else 512)
     rows += lao_result["rows"]
@@ -126,9 +126,7 @@ def run(quick: bool) -> dict:
 
     # LAO bricks on a sparse volume (a ball; 1/8 of the bricks within reach): bricked / plain.
     n, brick = (128, 16) if quick else (256, 32)
-    x = jnp.linspace(-1.0, 1.0, n, dtype=jnp.float32)
-    r = jnp.sqrt((x[:, None, None] - 0.4) ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)
-    ball = jnp.where(r < 0.15, 0.8, 0.0).astype(jnp.float32)
+    ball = sparse_ball(n)
     med = {}
     for b in (None, brick):
         fn = jax.jit(lambda a, b=b: lao(a, directions=16, radius=8.0, samples=16, brick_size=b))

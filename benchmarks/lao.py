@@ -205,6 +205,14 @@ def run(quick: bool) -> dict:
     }
 
 
+def sparse_ball(n: int) -> jax.Array:
+    """A small opaque ball (radius 0.15 of the half-edge, off centre) in ``n^3``
+    empty voxels: most bricks have no opacity within reach."""
+    x = jnp.linspace(-1.0, 1.0, n, dtype=jnp.float32)
+    r = jnp.sqrt((x[:, None, None] - 0.4) ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)
+    return jnp.where(r < 0.15, 0.8, 0.0).astype(jnp.float32)
+
+
 def _shells_jnp(n: int) -> jax.Array:
     """The shells opacity computed on the device (for large GPU sizes)."""
     x = jnp.linspace(-1.0, 1.0, n, dtype=jnp.float32)
@@ -381,9 +389,7 @@ def _pallas_bricks(n: int, ratios: dict, repeats: int) -> list[dict]:
     ``n^3``, L = 16, M = 16, R = 8, bricks of 32 (of ``n // 8`` when smaller): the
     Pallas march without and with bricks, and the XLA march with bricks."""
     brick = min(32, max(1, n // 8))
-    x = jnp.linspace(-1.0, 1.0, n, dtype=jnp.float32)
-    r = jnp.sqrt((x[:, None, None] - 0.4) ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)
-    ball = jnp.where(r < 0.15, 0.8, 0.0).astype(jnp.float32)
+    ball = sparse_ball(n)
     out, med = [], {}
     for implementation, b in (("pallas", None), ("pallas", brick), ("xla", brick)):
         fn = jax.jit(lambda a, i=implementation, b=b: lao(a, directions=16, radius=8.0,

@@ -383,9 +383,6 @@ def _chunk_adjoint_kernel(params_ref, index_ref, g_ref, acc_in_ref, acc_ref, *, 
     acc_ref[...] = total
 
 
-_BLOCK = object()  # placeholder for "this kernel's tile" in the in/out specs below
-
-
 def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, samples,
               correction, launch, interpret):
     """Cotangents of ``alpha``, ``weights``, ``radius`` and ``offset``."""
@@ -402,36 +399,36 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
     halo = tuple(o + 2 * p for o, p in zip(out_shape, pad, strict=True))
     volume = jax.ShapeDtypeStruct(out_shape, dtype)
 
-    def call(kernel, tile, **kwargs):
-        """``pallas_call`` of ``kernel`` over ``out_shape`` in tiles of ``tile``."""
+    def call(kernel, tile, layout):
+        """``pallas_call`` of ``kernel`` over ``out_shape`` in tiles of ``tile``;
+        ``layout(block, grid)`` gives its shapes and specs, ``block`` being one tile."""
         tile, grid, _ = _tiling(out_shape, tile)
-        block = pl.BlockSpec(tile, lambda i, j, k: (i, j, k))
-        specs = {name: tuple(block if spec is _BLOCK else spec for spec in kwargs.pop(name))
-                 for name in ("in_specs", "out_specs")}
         kernel = functools.partial(kernel, pad=pad, tile=tile, samples=samples)
-        return pl.pallas_call(kernel, grid=grid, **specs, **kwargs,
+        return pl.pallas_call(kernel, grid=grid,
+                              **layout(pl.BlockSpec(tile, lambda i, j, k: (i, j, k)), grid),
                               **_compiler_params(launch, interpret))
 
     whole = pl.no_block_spec
     starts_call = call(
         functools.partial(_chunk_starts_kernel, n_chunks=n_chunks, chunk=chunk,
                           correction=correction), launch.tile,
-        out_shape=(jax.ShapeDtypeStruct((n_chunks, *out_shape), dtype), volume),
-        in_specs=[whole, whole], out_specs=[whole, _BLOCK])
-    _, cotangent_grid, _ = _tiling(out_shape, cotangent_tile)
-    per_program = jax.ShapeDtypeStruct(cotangent_grid, dtype)
+        lambda block, grid: dict(
+            out_shape=(jax.ShapeDtypeStruct((n_chunks, *out_shape), dtype), volume),
+            in_specs=(whole, whole), out_specs=(whole, block)))
+    # the radius and offset sums: one partial sum per program
     one = pl.BlockSpec((1, 1, 1), lambda i, j, k: (i, j, k))
     cotangents_call = call(
         functools.partial(_chunk_cotangents_kernel, chunk=chunk, correction=correction),
         cotangent_tile,
-        out_shape=(volume, jax.ShapeDtypeStruct((chunk, *halo), dtype), per_program,
-                   per_program),
-        in_specs=[whole, whole, whole, whole, _BLOCK, _BLOCK, whole],
-        out_specs=[_BLOCK, whole, one, one], input_output_aliases={6: 1})
+        lambda block, grid: dict(
+            out_shape=(volume, jax.ShapeDtypeStruct((chunk, *halo), dtype),
+                       jax.ShapeDtypeStruct(grid, dtype), jax.ShapeDtypeStruct(grid, dtype)),
+            in_specs=(whole, whole, whole, whole, block, block, whole),
+            out_specs=(block, whole, one, one), input_output_aliases={6: 1}))
     adjoint_call = call(
         functools.partial(_chunk_adjoint_kernel, chunk=chunk), launch.tile,
-        out_shape=(volume,), in_specs=[whole, whole, whole, _BLOCK], out_specs=[_BLOCK],
-        input_output_aliases={3: 0})
+        lambda block, grid: dict(out_shape=volume, in_specs=(whole, whole, whole, block),
+                                 out_specs=block, input_output_aliases={3: 0}))
 
     def direction_bwd(carry, direction_weight):
         d_alpha, acc_slope, acc_radius, g = carry
@@ -444,7 +441,7 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
             index = jnp.reshape(k, (1,)).astype(jnp.int32)
             suffix, g, slope, radius_part = cotangents_call(
                 params, index, source, starts, suffix, ct, g)
-            (d_alpha,) = adjoint_call(params, index, g, d_alpha)
+            d_alpha = adjoint_call(params, index, g, d_alpha)
             return (suffix, g, d_alpha, acc_slope + jnp.sum(slope),
                     acc_radius + jnp.sum(radius_part)), None
 

@@ -381,9 +381,8 @@ _occlusion_sum.defvjp(_occlusion_sum_fwd, _occlusion_sum_bwd)
 
 def _march(source, pad, shape, directions, weights, radius, offset, samples,
            correction: bool) -> Array:
-    """AO of a window of ``shape`` whose opacity, padded by ``pad``, is ``source``."""
-    if samples == 1:
-        return jnp.ones(shape, source.dtype)
+    """AO of a window of ``shape`` whose opacity, padded by ``pad``, is ``source``
+    (``samples >= 2``)."""
     total = _occlusion_sum(pad, shape, correction, samples, source, directions, weights,
                            radius, offset)
     return 1 - total / samples
@@ -403,7 +402,8 @@ def _brick_group(brick: int, window: tuple[int, int, int], n_bricks: int) -> int
 
 
 _MAX_ACTIVE_FRACTION = 0.5
-_IMPLEMENTATIONS = ("xla", "pallas")
+_IMPLEMENTATIONS = {"xla": "fused shifted reads (XLA)",
+                    "pallas": "Pallas kernels (Triton on an NVIDIA GPU)"}
 
 
 def _active_bricks(alpha, pad, brick) -> Array:
@@ -678,9 +678,7 @@ def lao(
         brick_size = _checks.positive_int(brick_size, "brick_size", _WHERE)
     if max_radius is not None:
         max_radius = _checks.positive_float(max_radius, "max_radius", _WHERE)
-    if implementation not in _IMPLEMENTATIONS:
-        raise ValueError(f"{_WHERE}: `implementation` must be one of {_IMPLEMENTATIONS}, "
-                         f"got {implementation!r}.")
+    _checks.option(implementation, _IMPLEMENTATIONS, "implementation", _WHERE)
     dirs = lax.stop_gradient(_directions_array(directions, dtype))
     n_dirs = dirs.shape[0]
 
@@ -737,9 +735,10 @@ def lao(
 def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, brick_size,
          max_active, implementation):
     """The validated computation, compiled once per shape and static options."""
+    if samples == 1:
+        # eq. 3 with M = 1 is a single term with an empty product: no sample is taken
+        return jnp.ones_like(alpha)
     if implementation == "pallas":
-        if samples == 1:
-            return jnp.ones_like(alpha)
         # imported here: Pallas is loaded only by those who ask for it
         from . import _lao_pallas
 
@@ -819,9 +818,7 @@ class LocalAmbientOcclusion(eqx.Module):
         if max_radius is None and not isinstance(radius, jax.core.Tracer):
             max_radius = 2 * float(np.max(np.asarray(radius)))
         self.max_radius = max_radius
-        if implementation not in _IMPLEMENTATIONS:
-            raise ValueError(f"{where}: `implementation` must be one of {_IMPLEMENTATIONS}, "
-                             f"got {implementation!r}.")
+        _checks.option(implementation, _IMPLEMENTATIONS, "implementation", where)
         self.implementation = implementation
 
     def __call__(self, alpha: Volume) -> Volume:
