@@ -20,8 +20,9 @@ published peaks, not measured): an H100 SXM issues 4 x 32 thread instructions pe
 multiprocessor and clock (132 of them at 1.98 GHz), so 27 instructions a sample
 bound the forward near 1.2 T samples/s, and its L1 delivers 128 bytes per
 multiprocessor and clock while a sample reads 32 (eight corners of four bytes),
-about 1.05 T/s: both limits sit near issue 3's goal of 1 T/s. Needs ``pip install triton`` and a jaxlib that embeds Triton IR in
-its custom call (0.10.2 here; later ones compile while lowering, on a GPU).
+about 1.05 T/s: both limits sit near issue 3's goal of 1 T/s. Needs ``pip install
+triton`` and a jaxlib that embeds Triton IR in its custom call (0.10.2 here; later
+ones compile while lowering, on a GPU).
 """
 
 import collections

@@ -319,7 +319,7 @@ def test_obscurance_float32_agrees_with_float64(rho):
                          colors=jnp.asarray(colors, dtype), ambient=amb)
         assert grey.dtype == dtype and rgb.dtype == dtype
         out[dtype] = (np.asarray(grey, np.float64), np.asarray(rgb, np.float64))
-    for lo, hi in zip(out[jnp.float32], out[jnp.float64]):
+    for lo, hi in zip(out[jnp.float32], out[jnp.float64], strict=True):
         assert np.ptp(hi) > 0.3
         np.testing.assert_allclose(lo, hi, rtol=0, atol=2e-6)
     # and float64 is the reference's value
@@ -350,7 +350,7 @@ def test_threshold_and_shading_float32_agree_with_float64():
     np.testing.assert_array_equal(hi[0] == 0, obs <= 0.25)
     np.testing.assert_array_equal(lo[0] == 1, obs >= 0.75)
     np.testing.assert_array_equal(hi[0] == 1, obs >= 0.75)
-    for a, b in zip(lo, hi):
+    for a, b in zip(lo, hi, strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     assert np.all(hi[1][1, 1] == 0) and np.all(lo[1][1, 1] == 0)  # zero normal: dark
 

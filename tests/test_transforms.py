@@ -19,6 +19,8 @@ VOLUME = jnp.asarray(RNG.uniform(0, 1, SHAPE))
 VIEWS = icosphere(0)
 VIEWS4 = np.asarray(VIEWS[:4])  # concrete: directions set the sweep
 TF = vs.transfer.preset("grey")
+FEATURE_OPACITIES = jnp.stack([jnp.where(VOLUME < 0.3, ALPHA, 0.0),
+                               jnp.where(VOLUME > 0.6, ALPHA, 0.0)])
 # saliency growing along d: the most / least salient views change (vs VOLUME's)
 SAL_RAMP = VOLUME * jnp.linspace(0.0, 1.0, SHAPE[0])[:, None, None]
 
@@ -66,6 +68,13 @@ CASES = {
         (jnp.asarray([2.0, 3.5]), jnp.asarray([3.1, 1.2])), True),
     "Focus(radius)": (lambda r: vs.Focus(radius=r).weights((6, 7)),
                       (jnp.asarray(0.3), jnp.asarray(0.45)), True),
+    # sparse feature opacities: one-feature, mixed and empty neighbourhoods all occur
+    "merge_feature_ao(neighbourhood)": (
+        lambda ao: vs.merge_feature_ao(ao, FEATURE_OPACITIES, merge="neighbourhood"),
+        (jnp.stack([ALPHA, VOLUME]), jnp.stack([VOLUME, _smooth(1)])), True),
+    "merge_feature_ao(max)": (
+        lambda ao: vs.merge_feature_ao(ao, FEATURE_OPACITIES, merge="max"),
+        (jnp.stack([ALPHA, VOLUME]), jnp.stack([VOLUME, _smooth(1)])), True),
     "IntervalFeature": (lambda v: vs.IntervalFeature(0.2, 0.7).opacity(v, TF),
                         (VOLUME, _smooth(1)), False),
 }

@@ -12,6 +12,9 @@ from . import sampling as sampling
 from . import transfer as transfer
 from .camera import Camera as Camera
 from .composition import composite as composite
+from .feature_ao import FeatureAmbientOcclusion as FeatureAmbientOcclusion
+from .feature_ao import feature_ao as feature_ao
+from .feature_ao import merge_feature_ao as merge_feature_ao
 from .gradient import regression_gradient as regression_gradient
 from .importance import Focus as Focus
 from .importance import Importance as Importance

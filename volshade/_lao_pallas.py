@@ -56,7 +56,6 @@ would keep.
 """
 
 import functools
-import math
 from typing import NamedTuple
 
 import jax
@@ -107,7 +106,8 @@ class Launch(NamedTuple):
 
 
 #: The launches ``python -m benchmarks.run lao_pallas`` times (forward).
-LAUNCHES = (Launch(), Launch(tile=(2, 8, 32)), Launch(tile=(4, 8, 64)),
+DEFAULT_LAUNCH = Launch()
+LAUNCHES = (DEFAULT_LAUNCH, Launch(tile=(2, 8, 32)), Launch(tile=(4, 8, 64)),
             Launch(num_warps=8), Launch(tile=(2, 8, 32), vector=1),
             Launch(tile=(4, 8, 32), vector=1))
 
@@ -223,9 +223,9 @@ def _forward_kernel(params_ref, active_ref, source_ref, out_ref, *, pad, tile, s
     radius, offset = params_ref[0], params_ref[1]
     dtype = out_ref.dtype
 
-    def direction_body(l, total):
-        direction = [params_ref[2 + 4 * l + ax] for ax in range(3)]
-        weight = params_ref[2 + 4 * l + 3]
+    def direction_body(index, total):
+        direction = [params_ref[2 + 4 * index + ax] for ax in range(3)]
+        weight = params_ref[2 + 4 * index + 3]
 
         def sample_body(i, horner):
             # back to front, the Horner form of eq. 3 (as the XLA march):
@@ -498,7 +498,8 @@ _occlusion_sum.defvjp(_occlusion_sum_fwd, _occlusion_sum_bwd)
 
 
 def occlusion_sum(alpha, directions, weights, radius, offset, *, pad, samples: int,
-                  correction: bool, launch: Launch = Launch(), brick: int | None = None):
+                  correction: bool, launch: Launch = DEFAULT_LAUNCH,
+                  brick: int | None = None):
     r"""$\sum_l \hat w_l\, occ_l$ for the opacity volume ``alpha`` (unpadded), as
     :func:`volshade.lao._occlusion_sum` computes it for the source padded by ``pad``;
     ``samples`` must be at least 2. Differentiable in ``alpha``, ``weights``,

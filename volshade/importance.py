@@ -38,7 +38,6 @@ from ._numerics import safe_div, safe_norm, safe_normalize, safe_pow, smoothstep
 from ._types import Array, ArrayLike, Float
 from .gradient import gradient_magnitude
 
-
 _WEIGHTS = ("intensity", "extinction", "gradient", "silhouette", "unocclusion", "lighting")
 
 

@@ -21,6 +21,7 @@ from . import _checks
 from ._types import Array, Float
 from .camera import Camera
 from .composition import COMPOSITORS
+from .feature_ao import FeatureAmbientOcclusion
 from .importance import Focus, Importance
 from .lao import LocalAmbientOcclusion
 from .obscurance import ObscuranceParams
@@ -43,11 +44,19 @@ def _volume_ambient(scene: "Scene") -> Array:
                                       "maximum")
 
 
-def _lao_ambient(scene: "Scene") -> Array:
+def _voxel_step(scene: "Scene", params) -> float | None:
     # the corrected form reads alpha as the opacity of a one-voxel step (the geometric
     # mean edge for anisotropic voxels); the seeds' form takes the classified opacity
-    step = math.prod(scene.spacing) ** (1 / 3) if scene.lao.opacity_correction else None
-    return scene.lao(scene.transfer.opacity(scene.volume, step=step))
+    return math.prod(scene.spacing) ** (1 / 3) if params.opacity_correction else None
+
+
+def _lao_ambient(scene: "Scene") -> Array:
+    return scene.lao(scene.transfer.opacity(scene.volume, step=_voxel_step(scene, scene.lao)))
+
+
+def _feature_ao_ambient(scene: "Scene") -> Array:
+    return scene.feature_ao(scene.volume, base=scene.transfer,
+                            step=_voxel_step(scene, scene.feature_ao.lao))
 
 
 def _obscurance_ambient(scene: "Scene") -> Array:
@@ -75,6 +84,7 @@ AMBIENT: dict[str, Callable[["Scene"], Array | None]] = {
     "none": _nothing,
     "volume": _volume_ambient,
     "lao": _lao_ambient,
+    "feature_ao": _feature_ao_ambient,
     "obscurance": _obscurance_ambient,
 }
 MODULATION: dict[str, Callable[["Scene"], Array | None]] = {
@@ -93,7 +103,8 @@ class Scene(eqx.Module):
         step: sampling distance along rays in mm (static).
         ambient: ambient term: ``"none"``, ``"volume"`` (use ``ambient_volume``),
             ``"lao"`` (ray-marched local ambient occlusion of the transfer-function
-            opacity, with ``lao``) or ``"obscurance"`` (grey or colour-bleeding
+            opacity, with ``lao``), ``"feature_ao"`` (feature-driven AO, with
+            ``feature_ao``) or ``"obscurance"`` (grey or colour-bleeding
             obscurance, with ``obscurance``).
         ambient_volume: ``(D, H, W)`` or ``(D, H, W, 3)`` precomputed ambient
             factor in [0, 1] for ``ambient="volume"``.
@@ -102,6 +113,10 @@ class Scene(eqx.Module):
             as classified (per ``step0`` mm, the seeds' form) or, with
             ``opacity_correction``, corrected to a one-voxel step (the geometric
             mean of ``spacing``), as :func:`~volshade.lao.lao` reads it then.
+        feature_ao: :class:`~volshade.feature_ao.FeatureAmbientOcclusion` parameters
+            for ``ambient="feature_ao"`` (no default: the features are the scene's
+            own); interval features select from ``transfer``, and the opacities are
+            corrected as for ``lao``.
         obscurance: :class:`~volshade.obscurance.ObscuranceParams`.
         modulation: opacity modulation: ``"none"`` or ``"saliency"`` (obscurance
             saliency, with ``saliency``).
@@ -131,6 +146,7 @@ class Scene(eqx.Module):
     ambient: str = eqx.field(static=True, default="none")
     ambient_volume: Array | None = None
     lao: LocalAmbientOcclusion = eqx.field(default_factory=LocalAmbientOcclusion)
+    feature_ao: FeatureAmbientOcclusion | None = None
     obscurance: ObscuranceParams = eqx.field(default_factory=ObscuranceParams)
     modulation: str = eqx.field(static=True, default="none")
     saliency: SaliencyModulation = eqx.field(default_factory=SaliencyModulation)
@@ -155,6 +171,11 @@ class Scene(eqx.Module):
         _checks.option(self.composition, COMPOSITORS, "composition", _WHERE)
         if self.ambient == "volume" and self.ambient_volume is None:
             raise ValueError(f"{_WHERE}: ambient='volume' needs `ambient_volume`.")
+        if self.ambient == "feature_ao" and not isinstance(self.feature_ao,
+                                                           FeatureAmbientOcclusion):
+            raise ValueError(f"{_WHERE}: ambient='feature_ao' needs `feature_ao=` a "
+                             f"volshade.FeatureAmbientOcclusion (its features), got "
+                             f"{type(self.feature_ao).__name__}.")
         if self.focus is not None and self.composition != "importance":
             raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
         if jnp.shape(self.background) != (3,):

@@ -181,9 +181,11 @@ class IntervalFeature(eqx.Module):
         self.low = jnp.asarray(low, dtype=float)
         self.high = jnp.asarray(high, dtype=float)
 
-    def opacity(self, volume: Array, base: TransferFunction) -> Array:
+    def opacity(self, volume: Array, base: TransferFunction, *,
+                step: float | Array | None = None) -> Array:
+        """``base.opacity(volume, step=step)`` inside ``[low, high]``, 0 outside."""
         inside = (volume >= self.low) & (volume <= self.high)
-        return jnp.where(inside, base.opacity(volume), 0)
+        return jnp.where(inside, base.opacity(volume, step=step), 0)
 
 
 Feature = TransferFunction | IntervalFeature
@@ -194,8 +196,12 @@ def feature_opacities(
     features: Sequence[Feature],
     *,
     base: TransferFunction | None = None,
+    step: float | Array | None = None,
 ) -> Float[Array, "F D H W"]:
     """Stack the opacity volume of each feature (transfer functions or intervals of ``base``).
+
+    ``step`` (mm), if given, corrects every opacity to that segment length, as
+    :meth:`TransferFunction.opacity` does.
 
     Raises:
         ValueError: no features, or an interval feature without a ``base``.
@@ -207,12 +213,12 @@ def feature_opacities(
     out = []
     for i, feature in enumerate(features):
         if isinstance(feature, TransferFunction):
-            out.append(feature.opacity(volume))
+            out.append(feature.opacity(volume, step=step))
         elif isinstance(feature, IntervalFeature):
             if base is None:
                 raise ValueError(f"{where}: features[{i}] is an interval; pass `base=` "
                                  f"the transfer function it selects from.")
-            out.append(feature.opacity(volume, base))
+            out.append(feature.opacity(volume, base, step=step))
         else:
             raise TypeError(f"{where}: features[{i}] must be a TransferFunction or "
                             f"IntervalFeature, got {type(feature).__name__}.")

@@ -1,0 +1,319 @@
+"""Tests of volshade.feature_ao: reference agreement of every merge, the properties that
+motivate feature-driven AO, bricks, autodiff, the Module, the Scene, bad input."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import check_grad_fd
+from reference_feature_ao import feature_ao_reference, merge_reference
+
+import volshade as vs
+from volshade.feature_ao import MERGES, feature_labels
+
+SHELLS_TF = vs.transfer.preset("shells")
+# the three shells of the shells phantom, as intervals of its transfer function
+SHELLS = [vs.IntervalFeature(0.2, 0.4), vs.IntervalFeature(0.5, 0.7),
+          vs.IntervalFeature(0.8, 1.0)]
+DIRS = vs.directions.icosphere(0)
+
+
+def _shells(shape=16, dtype=jnp.float64):
+    return vs.data.phantom("shells", shape=shape).astype(dtype)
+
+
+def _blocks():
+    """Thick nested blocks of the shells' three values, so that neighbourhoods of one
+    feature, of several and of none all occur (the thin shells of a small phantom have
+    no uniform neighbourhood)."""
+    vol = np.zeros((14, 15, 13))
+    vol[1:13, 1:14, 1:7] = 0.3
+    vol[3:11, 3:12, 7:12] = 0.6
+    vol[5:9, 5:10, 2:5] = 1.0
+    return jnp.asarray(vol, jnp.float64)
+
+
+def _ramp_tf(opacities):
+    """A transfer function whose opacity rises with the intensity (a feature of its own)."""
+    points = jnp.linspace(0.0, 1.0, len(opacities))
+    return vs.TransferFunction(points, jnp.ones((len(opacities), 3)), jnp.asarray(opacities))
+
+
+def _regions(opacities):
+    """Voxels whose 3^3 neighbourhood is one feature, mixed, or has no feature."""
+    labels = np.asarray(feature_labels(jnp.asarray(opacities)))
+    padded = np.pad(labels, 1, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (3, 3, 3))
+    low, high = windows.min(axis=(-3, -2, -1)), windows.max(axis=(-3, -2, -1))
+    uniform = (low == high) & (labels >= 0)
+    empty = high < 0
+    return uniform, ~uniform & ~empty, empty
+
+
+# ----------------------------------------------------------------- reference agreement
+
+
+@pytest.mark.parametrize("merge", sorted(MERGES))
+def test_matches_voxel_by_voxel_reference(merge):
+    vol = _blocks()
+    features = [*SHELLS[:2], _ramp_tf([0.0, 0.0, 0.0, 0.2, 0.6])]  # overlapping last two
+    opacities = np.asarray(vs.transfer.feature_opacities(vol, features, base=SHELLS_TF))
+    if merge == "neighbourhood":
+        # every branch of the merge is exercised by this volume
+        assert all(region.mean() > 0.05 for region in _regions(opacities))
+    got = vs.feature_ao(vol, features=features, base=SHELLS_TF, directions=DIRS, radius=4.5,
+                        offset=0.5, samples=6, merge=merge)
+    ref = feature_ao_reference(opacities, DIRS, 4.5, 0.5, 6, merge)
+    assert got.shape == vol.shape and got.dtype == jnp.float64
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("merge", sorted(MERGES))
+def test_float32_matches_float64_reference(merge):
+    vol = _shells(dtype=jnp.float32)
+    got = vs.feature_ao(vol, features=SHELLS, base=SHELLS_TF, directions=DIRS, radius=5.0,
+                        samples=8, merge=merge, opacity_correction=True, step=1.0)
+    opacities = np.asarray(vs.transfer.feature_opacities(vol, SHELLS, base=SHELLS_TF, step=1.0))
+    ref = feature_ao_reference(opacities, DIRS, 5.0, 1.0, 8, merge, opacity_correction=True)
+    assert got.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("merge", sorted(MERGES))
+def test_merge_matches_reference_on_random_volumes(merge):
+    rng = np.random.default_rng(3)
+    shape = (3, 7, 6, 8)
+    ao = rng.uniform(0, 1, shape)
+    # sparse opacities, with whole blocks of one feature and empty blocks
+    opacities = rng.uniform(0, 1, shape) * (rng.uniform(0, 1, shape) < 0.3)
+    opacities[0, :3, :3, :4] = 0.8
+    opacities[1:, :3, :3, :4] = 0.0
+    opacities[:, 4:, 3:, 4:] = 0.0
+    assert all(region.any() for region in _regions(opacities))
+    got = vs.merge_feature_ao(jnp.asarray(ao), jnp.asarray(opacities), merge=merge)
+    np.testing.assert_allclose(np.asarray(got), merge_reference(ao, opacities, merge),
+                               rtol=0, atol=1e-14)
+
+
+def test_merge_small_cases_by_hand():
+    ao = jnp.stack([jnp.full((3, 3, 3), 0.9), jnp.full((3, 3, 3), 0.4)])
+    opacities = jnp.zeros((2, 3, 3, 3)).at[0].set(0.5)
+    # every voxel is feature 0: its own value, and the whole neighbourhood is uniform
+    assert np.allclose(vs.merge_feature_ao(ao, opacities, merge="feature"), 0.9)
+    assert np.allclose(vs.merge_feature_ao(ao, opacities, merge="neighbourhood"), 0.9)
+    assert np.allclose(vs.merge_feature_ao(ao, opacities, merge="max"), 0.4)  # min visibility
+    # one voxel of feature 1 (opacity 0.25) in the middle: every neighbourhood is mixed
+    # and takes the opacity-weighted mean over its voxels inside the volume, all 27 for
+    # the centre, 8 for a corner
+    opacities = opacities.at[:, 1, 1, 1].set(jnp.asarray([0.0, 0.25]))
+    out = vs.merge_feature_ao(ao, opacities, merge="neighbourhood")
+    for index, n_first in (((1, 1, 1), 26), ((0, 0, 0), 7), ((2, 0, 2), 7), ((1, 0, 1), 17)):
+        expected = (n_first * 0.5 * 0.9 + 0.25 * 0.4) / (n_first * 0.5 + 0.25)
+        np.testing.assert_allclose(float(out[index]), expected, rtol=1e-12)
+    # no feature anywhere: every merge is the maximum occlusion
+    for merge in MERGES:
+        assert np.allclose(vs.merge_feature_ao(ao, jnp.zeros_like(ao), merge=merge), 0.4)
+
+
+# ----------------------------------------------------------------- properties
+
+
+@pytest.mark.parametrize("merge", ["max", "feature"])
+def test_one_feature_is_classic_lao(merge):
+    vol = _shells()
+    got = vs.feature_ao(vol, features=[SHELLS_TF], directions=DIRS, radius=5.0, samples=6,
+                        merge=merge)
+    classic = vs.lao(SHELLS_TF.opacity(vol), directions=DIRS, radius=5.0, samples=6)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(classic))
+
+
+@pytest.mark.parametrize("merge", ["max", "feature"])
+def test_never_darker_than_classic_lao(merge):
+    # the features split the classified opacity, so each T_k sees fewer occluders than
+    # classic AO (AO is monotone): no voxel gets darker, and the shells, which occlude
+    # each other in classic AO, get lighter (the over-darkening of section 1)
+    vol = _shells(24)
+    features = [vs.IntervalFeature(0.0, 0.45), vs.IntervalFeature(0.45, 0.75),
+                vs.IntervalFeature(0.75, 1.0)]
+    assert np.allclose(np.asarray(vs.transfer.feature_opacities(vol, features, base=SHELLS_TF)
+                                  .max(axis=0)), np.asarray(SHELLS_TF.opacity(vol)))
+    fao = vs.feature_ao(vol, features=features, base=SHELLS_TF, directions=DIRS, radius=6.0,
+                        samples=8, merge=merge)
+    classic = vs.lao(SHELLS_TF.opacity(vol), directions=DIRS, radius=6.0, samples=8)
+    gain = np.asarray(fao - classic)
+    assert gain.min() >= -1e-12
+    shells = np.asarray(vol) > 0
+    assert gain[shells].mean() > 0.02
+
+
+def test_a_feature_with_no_opacity_changes_nothing():
+    vol = _shells()
+    kw = dict(base=SHELLS_TF, directions=DIRS, radius=4.0, samples=6)
+    nowhere = vs.IntervalFeature(0.42, 0.44)  # between the shells' values: empty
+    assert float(jnp.max(nowhere.opacity(vol, SHELLS_TF))) == 0
+    for merge in MERGES:
+        with_it = vs.feature_ao(vol, features=[*SHELLS, nowhere], merge=merge, **kw)
+        without = vs.feature_ao(vol, features=SHELLS, merge=merge, **kw)
+        np.testing.assert_array_equal(np.asarray(with_it), np.asarray(without))
+
+
+def test_empty_one_voxel_and_opaque_volumes():
+    kw = dict(directions=DIRS, radius=3.0, samples=4)
+    empty = vs.feature_ao(jnp.zeros((8, 8, 8)), features=SHELLS, base=SHELLS_TF, **kw)
+    assert np.all(np.asarray(empty) == 1.0)
+    one = vs.feature_ao(jnp.ones((1, 1, 1)), features=SHELLS, base=SHELLS_TF, **kw)
+    assert one.shape == (1, 1, 1) and 0 < float(one[0, 0, 0]) <= 1
+
+    opaque_tf = _ramp_tf([1.0, 1.0])
+
+    def loss(radius):
+        return jnp.sum(vs.feature_ao(jnp.ones((6, 6, 6)), features=[opaque_tf, opaque_tf],
+                                     merge="neighbourhood", directions=DIRS, radius=radius,
+                                     samples=4, opacity_correction=True))
+
+    g = jax.grad(loss)(3.0)
+    assert np.isfinite(float(g)) and float(loss(3.0)) > 0
+
+
+# ----------------------------------------------------------------- bricks
+
+
+def _two_blobs():
+    vol = np.zeros((24, 24, 24))
+    vol[2:6, 3:7, 2:5] = 0.9        # feature "high"
+    vol[16:21, 17:20, 15:20] = 0.3  # feature "low", far from the other
+    return jnp.asarray(vol, jnp.float64)
+
+
+FEATURES_2 = [vs.IntervalFeature(0.2, 0.4), vs.IntervalFeature(0.8, 1.0)]
+TF_2 = _ramp_tf([0.0, 0.5, 0.9])
+
+
+def test_bricked_equals_unbricked_values_and_gradients():
+    # bricks act on each feature's march, before the merge: one merge is enough
+    vol, merge = _two_blobs(), "neighbourhood"
+
+    def run(radius, brick_size):
+        return vs.feature_ao(vol, features=FEATURES_2, base=TF_2, directions=DIRS,
+                             radius=radius, samples=5, merge=merge, brick_size=brick_size,
+                             max_radius=5.0)
+
+    np.testing.assert_allclose(np.asarray(run(3.5, 4)), np.asarray(run(3.5, None)),
+                               rtol=0, atol=1e-12)
+    w = jnp.asarray(np.random.default_rng(1).uniform(size=vol.shape))
+    grads = [jax.grad(lambda r, b=b: jnp.sum(w * run(r, b)))(3.5) for b in (4, None)]
+    np.testing.assert_allclose(float(grads[0]), float(grads[1]), rtol=1e-10)
+    assert float(grads[1]) != 0
+
+
+# ----------------------------------------------------------------- transforms and autodiff
+
+
+def test_jit_equals_eager_and_vmap_equals_a_loop():
+    vols = jnp.stack([_shells(), _shells()[::-1, :, ::-1] * 0.9])
+    fn = jax.jit(lambda v: vs.feature_ao(v, features=SHELLS, base=SHELLS_TF, directions=DIRS,
+                                         radius=4.0, samples=5, merge="neighbourhood"))
+    eager = [vs.feature_ao(v, features=SHELLS, base=SHELLS_TF, directions=DIRS, radius=4.0,
+                           samples=5, merge="neighbourhood") for v in vols]
+    assert not np.allclose(np.asarray(eager[0]), np.asarray(eager[1]))
+    batched = jax.vmap(fn)(vols)
+    for k in range(2):
+        np.testing.assert_allclose(np.asarray(fn(vols[k])), np.asarray(eager[k]), atol=1e-12)
+        np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(eager[k]), atol=1e-12)
+
+
+@pytest.mark.parametrize("merge", sorted(MERGES))
+def test_grads_vs_finite_differences(merge):
+    vol = _shells(12)
+    weight = jnp.asarray(np.random.default_rng(5).normal(size=vol.shape))
+
+    def loss_radius_offset(p):
+        return jnp.sum(weight * vs.feature_ao(
+            vol, features=SHELLS, base=SHELLS_TF, directions=DIRS, radius=p[0], offset=p[1],
+            samples=5, merge=merge, max_radius=6.0))
+
+    g = check_grad_fd(loss_radius_offset, jnp.asarray([4.3, 0.7]), n_dirs=2)
+    assert np.all(np.asarray(g) != 0)
+    if merge != "neighbourhood":
+        return
+
+    # the control values of a transfer-function feature, through the merge with the most
+    # arithmetic
+    def loss_opacities(o):
+        return jnp.sum(weight * vs.feature_ao(
+            vol, features=[SHELLS[0], _ramp_tf(o)], base=SHELLS_TF, directions=DIRS,
+            radius=4.0, samples=5, merge=merge))
+
+    g = check_grad_fd(loss_opacities, jnp.asarray([0.05, 0.1, 0.3, 0.5]))
+    assert float(jnp.max(jnp.abs(g))) > 0
+
+
+def test_module_matches_function_and_differentiates():
+    vol = _shells(12)
+    params = vs.FeatureAmbientOcclusion(
+        SHELLS, lao=vs.LocalAmbientOcclusion(4.0, directions=12, samples=5,
+                                             opacity_correction=True), merge="feature")
+    direct = vs.feature_ao(vol, features=SHELLS, base=SHELLS_TF, directions=params.lao.directions,
+                           radius=4.0, samples=5, merge="feature", max_radius=8.0,
+                           opacity_correction=True)
+    np.testing.assert_array_equal(np.asarray(params(vol, base=SHELLS_TF)), np.asarray(direct))
+    grads = eqx.filter_jit(eqx.filter_grad(
+        lambda p: jnp.sum(p(vol, base=SHELLS_TF))))(params)
+    # with the correction, a longer reach sees more of the shells: darker
+    assert float(grads.lao.radius) < 0
+    assert np.isfinite(float(grads.lao.offset))
+    assert float(jnp.abs(grads.features[0].low)) == 0  # interval ends select: no gradient
+
+
+def test_scene_renders_feature_ao_as_its_ambient_volume():
+    vol = _shells(16)
+    params = vs.FeatureAmbientOcclusion(
+        SHELLS, lao=vs.LocalAmbientOcclusion(4.0, directions=12, samples=5))
+    camera = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(12, 12))
+    scene = vs.Scene(volume=vol, transfer=SHELLS_TF, ambient="feature_ao", feature_ao=params,
+                     shading="phong")
+    image = vs.render(scene, camera)
+    ambient = params(vol, base=SHELLS_TF)
+    same = vs.render(vs.Scene(volume=vol, transfer=SHELLS_TF, ambient="volume",
+                              ambient_volume=ambient, shading="phong"), camera)
+    np.testing.assert_allclose(np.asarray(image), np.asarray(same), atol=1e-12)
+    plain = vs.render(vs.Scene(volume=vol, transfer=SHELLS_TF, shading="phong"), camera)
+    assert np.abs(np.asarray(image - plain)).max() > 1e-3
+    assert scene.plan()["ambient"] == "feature_ao"
+
+
+# ----------------------------------------------------------------- bad input
+
+
+def test_bad_inputs_raise_clear_errors():
+    vol = _shells(8)
+    kw = dict(directions=DIRS, radius=3.0, samples=4)
+    with pytest.raises(ValueError, match="features.*empty"):
+        vs.feature_ao(vol, features=[], **kw)
+    with pytest.raises(ValueError, match="unknown merge 'mean'.*'max'"):
+        vs.feature_ao(vol, features=SHELLS, base=SHELLS_TF, merge="mean", **kw)
+    with pytest.raises(ValueError, match="base="):
+        vs.feature_ao(vol, features=SHELLS, **kw)
+    with pytest.raises(TypeError, match=r"features\[1\]"):
+        vs.feature_ao(vol, features=[SHELLS_TF, "skull"], **kw)
+    with pytest.raises(ValueError, match="radius.*offset"):
+        vs.feature_ao(vol, features=[SHELLS_TF], directions=DIRS, radius=1.0, offset=2.0)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf"):
+        vs.feature_ao(vol.at[1, 2, 3].set(jnp.nan), features=[SHELLS_TF], **kw)
+    with pytest.raises(ValueError, match="shape of `ao`"):
+        vs.merge_feature_ao(jnp.ones((2, 4, 4, 4)), jnp.ones((3, 4, 4, 4)))
+    with pytest.raises(ValueError, match="`ao` must not be empty"):
+        vs.merge_feature_ao(jnp.ones((0, 4, 4, 4)), jnp.ones((0, 4, 4, 4)))
+    with pytest.raises(ValueError, match=r"\(F, D, H, W\)"):
+        vs.merge_feature_ao(jnp.ones((4, 4, 4)), jnp.ones((4, 4, 4)))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"\[0, 1\]"):
+        vs.merge_feature_ao(jnp.full((1, 4, 4, 4), 1.5), jnp.ones((1, 4, 4, 4)))
+    with pytest.raises(ValueError, match="features.*empty"):
+        vs.FeatureAmbientOcclusion([])
+    with pytest.raises(TypeError, match=r"features\[0\]"):
+        vs.FeatureAmbientOcclusion([0.5])
+    with pytest.raises(ValueError, match="unknown merge"):
+        vs.FeatureAmbientOcclusion(SHELLS, merge="min")
+    with pytest.raises(ValueError, match="ambient='feature_ao' needs"):
+        vs.Scene(volume=vol, transfer=SHELLS_TF, ambient="feature_ao")
