@@ -184,8 +184,11 @@ class IntervalFeature(eqx.Module):
     def opacity(self, volume: Array, base: TransferFunction, *,
                 step: float | Array | None = None) -> Array:
         """``base.opacity(volume, step=step)`` inside ``[low, high]``, 0 outside."""
+        return self._select(volume, base.opacity(volume, step=step))
+
+    def _select(self, volume: Array, base_opacity: Array) -> Array:
         inside = (volume >= self.low) & (volume <= self.high)
-        return jnp.where(inside, base.opacity(volume, step=step), 0)
+        return jnp.where(inside, base_opacity, 0)
 
 
 Feature = TransferFunction | IntervalFeature
@@ -211,6 +214,7 @@ def feature_opacities(
     if len(features) == 0:
         raise ValueError(f"{where}: `features` is empty; pass at least one feature.")
     out = []
+    base_opacity = None  # classified once for all the intervals
     for i, feature in enumerate(features):
         if isinstance(feature, TransferFunction):
             out.append(feature.opacity(volume, step=step))
@@ -218,7 +222,9 @@ def feature_opacities(
             if base is None:
                 raise ValueError(f"{where}: features[{i}] is an interval; pass `base=` "
                                  f"the transfer function it selects from.")
-            out.append(feature.opacity(volume, base, step=step))
+            if base_opacity is None:
+                base_opacity = base.opacity(volume, step=step)
+            out.append(feature._select(volume, base_opacity))
         else:
             raise TypeError(f"{where}: features[{i}] must be a TransferFunction or "
                             f"IntervalFeature, got {type(feature).__name__}.")
