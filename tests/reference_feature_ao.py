@@ -37,12 +37,12 @@ def merge_reference(ao, opacities, merge):
         elif merge == "neighbourhood":
             neighbours = [tuple(np.add(x, d)) for d in itertools.product((-1, 0, 1), repeat=3)]
             neighbours = [y for y in neighbours if all(0 <= y[a] < shape[a] for a in range(3))]
-            if labels[x] >= 0 and all(labels[y] == labels[x] for y in neighbours):
-                out[x] = own(x)
+            if all(labels[y] == labels[x] for y in neighbours):
+                out[x] = own(x)  # one feature, or none (then the min, as when empty)
                 continue
             weights = [opacities[(slice(None), *y)].max() for y in neighbours]
             total = sum(weights)
-            if total > 0:
+            if total > np.finfo(ao.dtype).eps:  # else: as empty (see volshade.feature_ao)
                 out[x] = sum(w * own(y) for w, y in zip(weights, neighbours, strict=True)) / total
             else:
                 out[x] = ao[(slice(None), *x)].min()

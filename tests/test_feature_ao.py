@@ -31,6 +31,7 @@ def _blocks():
     vol[1:13, 1:14, 1:7] = 0.3
     vol[3:11, 3:12, 7:12] = 0.6
     vol[5:9, 5:10, 2:5] = 1.0
+    vol[0:5, 11:15, 9:13] = 0.6  # a second feature touching two faces of the volume
     return jnp.asarray(vol, jnp.float64)
 
 
@@ -80,6 +81,20 @@ def test_float32_matches_float64_reference(merge):
     np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-6)
 
 
+def test_step_corrects_the_feature_opacities():
+    vol = _shells(12)
+    kw = dict(features=SHELLS, base=SHELLS_TF, directions=DIRS, radius=4.0, samples=5,
+              opacity_correction=True, merge="neighbourhood")
+    got = vs.feature_ao(vol, step=2.5, **kw)
+    opacities = np.asarray(vs.transfer.feature_opacities(vol, SHELLS, base=SHELLS_TF, step=2.5))
+    np.testing.assert_allclose(np.asarray(opacities.max(axis=0)),
+                               np.asarray(SHELLS_TF.opacity(vol, step=2.5)), atol=1e-15)
+    ref = feature_ao_reference(opacities, DIRS, 4.0, 1.0, 5, "neighbourhood",
+                               opacity_correction=True)
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-12)
+    assert np.abs(np.asarray(got - vs.feature_ao(vol, **kw))).max() > 0.01
+
+
 @pytest.mark.parametrize("merge", sorted(MERGES))
 def test_merge_matches_reference_on_random_volumes(merge):
     rng = np.random.default_rng(3)
@@ -114,6 +129,27 @@ def test_merge_small_cases_by_hand():
     # no feature anywhere: every merge is the maximum occlusion
     for merge in MERGES:
         assert np.allclose(vs.merge_feature_ao(ao, jnp.zeros_like(ao), merge=merge), 0.4)
+    # ties go to the first feature
+    tied = jnp.full_like(ao, 0.3)
+    assert np.allclose(vs.merge_feature_ao(ao, tied, merge="feature"), 0.9)
+    assert np.allclose(vs.merge_feature_ao(ao[::-1], tied, merge="feature"), 0.4)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_no_nan_in_jacrev_on_hard_opacities(dtype):
+    # zero, tiny (down to the smallest normal), tied and opaque feature opacities: the
+    # neighbourhood mean's derivative grows as 1 / (summed opacity) and must not overflow
+    rng = np.random.default_rng(0)
+    shape = (2, 5, 4, 6)
+    tiny = float(jnp.finfo(dtype).tiny)
+    opacities = rng.choice(np.asarray([0.0, tiny, 1e-30, 1e-12, 1e-7, 0.5, 1.0]), shape)
+    opacities[:, 0] = 0.25  # ties
+    ao = rng.uniform(0.05, 1.0, shape)
+    ao_, op_ = jnp.asarray(ao, dtype), jnp.asarray(opacities, dtype)
+    for merge in MERGES:
+        jac_ao, jac_op = jax.jacrev(lambda a, o, m=merge: vs.merge_feature_ao(a, o, merge=m),
+                                    argnums=(0, 1))(ao_, op_)
+        assert np.all(np.isfinite(np.asarray(jac_ao))) and np.all(np.isfinite(np.asarray(jac_op)))
 
 
 # ----------------------------------------------------------------- properties
@@ -162,8 +198,10 @@ def test_empty_one_voxel_and_opaque_volumes():
     kw = dict(directions=DIRS, radius=3.0, samples=4)
     empty = vs.feature_ao(jnp.zeros((8, 8, 8)), features=SHELLS, base=SHELLS_TF, **kw)
     assert np.all(np.asarray(empty) == 1.0)
-    one = vs.feature_ao(jnp.ones((1, 1, 1)), features=SHELLS, base=SHELLS_TF, **kw)
-    assert one.shape == (1, 1, 1) and 0 < float(one[0, 0, 0]) <= 1
+    # (offset 0.2: the first samples are close enough to read the voxel itself)
+    one = vs.feature_ao(jnp.ones((1, 1, 1)), features=SHELLS, base=SHELLS_TF, offset=0.2, **kw)
+    alone = vs.lao(SHELLS[2].opacity(jnp.ones((1, 1, 1)), SHELLS_TF), offset=0.2, **kw)
+    assert one.shape == (1, 1, 1) and float(one[0, 0, 0]) == float(alone[0, 0, 0]) < 1
 
     opaque_tf = _ramp_tf([1.0, 1.0])
 
@@ -309,6 +347,15 @@ def test_bad_inputs_raise_clear_errors():
         vs.merge_feature_ao(jnp.ones((4, 4, 4)), jnp.ones((4, 4, 4)))
     with pytest.raises(eqx.EquinoxRuntimeError, match=r"\[0, 1\]"):
         vs.merge_feature_ao(jnp.full((1, 4, 4, 4), 1.5), jnp.ones((1, 4, 4, 4)))
+    with pytest.raises(TypeError, match=r"list of features.*\[TransferFunction"):
+        vs.feature_ao(vol, features=SHELLS_TF, **kw)
+    with pytest.raises(TypeError, match=r"features.*list.*got float"):
+        vs.feature_ao(vol, features=0.5, **kw)
+    for step in (0.0, -1.0, float("inf")):
+        with pytest.raises(ValueError, match="`step` must be a finite number > 0"):
+            vs.feature_ao(vol, features=SHELLS, base=SHELLS_TF, step=step, **kw)
+    with pytest.raises(TypeError, match="`base` must be a volshade.TransferFunction"):
+        vs.feature_ao(vol, features=SHELLS, base="shells", **kw)
     with pytest.raises(ValueError, match="features.*empty"):
         vs.FeatureAmbientOcclusion([])
     with pytest.raises(TypeError, match=r"features\[0\]"):
@@ -317,3 +364,26 @@ def test_bad_inputs_raise_clear_errors():
         vs.FeatureAmbientOcclusion(SHELLS, merge="min")
     with pytest.raises(ValueError, match="ambient='feature_ao' needs"):
         vs.Scene(volume=vol, transfer=SHELLS_TF, ambient="feature_ao")
+
+
+def test_scene_corrects_feature_opacities_to_the_voxel_step():
+    # as for ambient="lao": with the opacity correction each feature's opacity is that of
+    # a one-voxel step (2 mm voxels here), however the transfer function is written
+    from volshade.scene import _feature_ao_ambient
+
+    rows = [(0.0, 1, 1, 1, 0.3), (1.0, 1, 1, 1, 0.3)]
+    per_mm = vs.TransferFunction.from_points(rows, step0=1.0)
+    per_half_mm = vs.TransferFunction.from_points(
+        [(x, r, g, b, 1 - (1 - a) ** 0.5) for x, r, g, b, a in rows], step0=0.5)
+    vol = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (10, 10, 10)))
+    params = vs.FeatureAmbientOcclusion(
+        [vs.IntervalFeature(0.0, 0.5), vs.IntervalFeature(0.5, 1.0)],
+        lao=vs.LocalAmbientOcclusion(3.0, offset=0.5, directions=6, samples=4,
+                                     opacity_correction=True))
+    aos = [_feature_ao_ambient(vs.Scene(volume=vol, transfer=tf, ambient="feature_ao",
+                                        feature_ao=params, spacing=(2.0, 2.0, 2.0)))
+           for tf in (per_mm, per_half_mm)]
+    np.testing.assert_allclose(np.asarray(aos[0]), np.asarray(aos[1]), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(aos[0]), np.asarray(params(vol, base=per_mm, step=2.0)),
+                               atol=1e-12)
+    assert np.abs(np.asarray(aos[0] - params(vol, base=per_mm))).max() > 0.01

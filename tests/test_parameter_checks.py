@@ -38,8 +38,9 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     def loss(scene):
         return jnp.sum(vs.render(scene, CAM)[..., :3])
 
-    g_int = eqx.filter_grad(loss)(_obscurance_scene(vs.ObscuranceParams(d_max=4, level=0)))
-    g_float = eqx.filter_grad(loss)(_obscurance_scene(vs.ObscuranceParams(d_max=4.0, level=0)))
+    grad = eqx.filter_jit(eqx.filter_grad(loss))  # one compile for both scenes
+    g_int = grad(_obscurance_scene(vs.ObscuranceParams(d_max=4, level=0)))
+    g_float = grad(_obscurance_scene(vs.ObscuranceParams(d_max=4.0, level=0)))
     assert g_int.obscurance.d_max is not None
     assert float(g_int.obscurance.d_max) == float(g_float.obscurance.d_max) != 0.0
 
@@ -67,13 +68,12 @@ def test_modules_built_with_a_batch_axis_vmap():
     batched = vs.Phong(ambient=[0.2, 0.4], diffuse=[0.6, 0.6], specular=[0.2, 0.0],
                        shininess=[8.0, 16.0])
     scene = vs.Scene(volume=VOL, transfer=TF, shading="phong")
-    images = jax.vmap(lambda p: vs.render(eqx.tree_at(lambda s: s.phong, scene, p), CAM))(
-        batched)
+    render = eqx.filter_jit(lambda p: vs.render(eqx.tree_at(lambda s: s.phong, scene, p), CAM))
+    images = eqx.filter_jit(jax.vmap(render))(batched)
     for i in range(2):
         one = vs.Phong(**{k: getattr(batched, k)[i] for k in
                           ("ambient", "diffuse", "specular", "shininess")})
-        np.testing.assert_allclose(images[i], vs.render(eqx.tree_at(lambda s: s.phong, scene,
-                                                                    one), CAM), atol=1e-12)
+        np.testing.assert_allclose(images[i], render(one), atol=1e-12)
     params = vs.ObscuranceParams(d_max=[3.0, 5.0], low=[0.0, 0.1], high=[1.0, 0.9], level=0)
     out = jax.vmap(lambda p: p(VOL, TF))(params)
     np.testing.assert_allclose(out[1], vs.ObscuranceParams(d_max=5.0, low=0.1, high=0.9,

@@ -127,12 +127,12 @@ def test_jit_vmap_grad_of_march():
     # vmap over volumes and over cameras; grads w.r.t. the volume and the camera.
     # every batch element equals its own render (a loop), not just one of them
     scales = (1.0, 0.5, 0.8)
-    batched = jax.vmap(lambda v: march(v, tf, cam))(jnp.stack([s * vol for s in scales]))
+    batched = jax.jit(jax.vmap(lambda v: march(v, tf, cam)))(jnp.stack([s * vol for s in scales]))
     for i, s in enumerate(scales):
         np.testing.assert_allclose(batched[i], jitted_march(s * vol, tf, cam), atol=1e-12)
     azimuths = (10.0, 50.0, -70.0)
     cams = jax.vmap(lambda a: Camera.orbit(azimuth=a, image_shape=(5, 4)))(jnp.array(azimuths))
-    per_cam = eqx.filter_vmap(lambda c: march(vol, tf, c))(cams)
+    per_cam = eqx.filter_jit(eqx.filter_vmap(lambda c: march(vol, tf, c)))(cams)
     np.testing.assert_allclose(per_cam[0], eager, atol=1e-12)
     for i, a in enumerate(azimuths):
         np.testing.assert_allclose(

@@ -75,6 +75,14 @@ CASES = {
     "merge_feature_ao(max)": (
         lambda ao: vs.merge_feature_ao(ao, FEATURE_OPACITIES, merge="max"),
         (jnp.stack([ALPHA, VOLUME]), jnp.stack([VOLUME, _smooth(1)])), True),
+    "merge_feature_ao(feature)": (
+        lambda ao: vs.merge_feature_ao(ao, FEATURE_OPACITIES, merge="feature"),
+        (jnp.stack([ALPHA, VOLUME]), jnp.stack([VOLUME, _smooth(1)])), True),
+    # through the weights of the mean (positive opacities: no voxel changes feature)
+    "merge_feature_ao(neighbourhood, opacities)": (
+        lambda op: vs.merge_feature_ao(jnp.stack([ALPHA, VOLUME]), op, merge="neighbourhood"),
+        (0.05 + 0.9 * jnp.stack([ALPHA, VOLUME]), 0.05 + 0.9 * jnp.stack([_smooth(1), ALPHA])),
+        True),
     "IntervalFeature": (lambda v: vs.IntervalFeature(0.2, 0.7).opacity(v, TF),
                         (VOLUME, _smooth(1)), False),
 }

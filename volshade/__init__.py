@@ -11,6 +11,14 @@ from . import gradient as gradient
 from . import sampling as sampling
 from . import transfer as transfer
 from .camera import Camera as Camera
+from .cao import contextual_ao as contextual_ao
+from .clip import BoxClip as BoxClip
+from .clip import HalfSpaceClip as HalfSpaceClip
+from .clip import SphereClip as SphereClip
+from .clip import TorusClip as TorusClip
+from .clip import affected_mask as affected_mask
+from .clip import clip_mask as clip_mask
+from .clip import clip_opacity as clip_opacity
 from .composition import composite as composite
 from .feature_ao import FeatureAmbientOcclusion as FeatureAmbientOcclusion
 from .feature_ao import feature_ao as feature_ao

@@ -9,35 +9,45 @@ every other feature transparent,
 $$ T_k(x) = \mathrm{AO}\big(\alpha_k\big)(x), \qquad \alpha_k = \text{opacity of feature } k,
 \quad \alpha_j = 0 \text{ for } j \ne k \quad \text{(section 4.1)}, $$
 
-so each feature keeps its self-occlusion (the shape cues) and loses the
-inter-occlusion, and then merge the $T_k$ into one ambient volume (section 4.2,
-:data:`MERGES`):
+so each feature keeps its self-occlusion (the shape cues) without the
+occlusion of the others, and then merge the $T_k$ into one ambient volume
+(section 4.2, :data:`MERGES`):
 
 * ``"max"`` (the paper's choice, used for all its results): the *maximum
   occlusion*, $\mathrm{AO}(x) = \min_k T_k(x)$. The paper writes it as a
   maximum of its occlusion values, which grow towards a feature; here AO is a
   visibility (1 = unoccluded, as :func:`~volshade.lao.lao` returns it), so the
   same operator is the minimum. The maximum *visibility* would be 1 wherever any
-  one feature is out of reach, i.e. almost everywhere. It "extends the
-  influence of opaque features to neighbouring less opaque ones" (section 4.2).
+  one feature is out of reach, i.e. almost everywhere. Each voxel keeps the
+  occlusion of the single feature that occludes it most, its own or a
+  neighbour's: it "extends the influence of opaque features to neighbouring less
+  opaque ones" (section 4.2), and only the sum of several features' occlusions,
+  which over-darkens classic AO, is gone.
 * ``"feature"``: each voxel takes the value of its own feature,
   $T_{f(x)}(x)$ (Figure 3a), with $f(x)$ the feature of largest opacity at
-  $x$; voxels of no feature (all $\alpha_k = 0$) take the ``"max"`` value. It
-  shows the abrupt borders that motivate the other two.
-* ``"neighbourhood"``: where the voxel and all its 26 neighbours (inside the
-  volume) belong to one feature $k$, $T_k(x)$; otherwise the opacity-weighted
-  mean over the $3^3$ neighbourhood (section 4.2, Figure 3b),
+  $x$ (the first on ties); voxels of no feature (all $\alpha_k = 0$) take the
+  ``"max"`` value. Only this merge drops all inter-occlusion; it shows the
+  abrupt borders that motivate the other two.
+* ``"neighbourhood"``: where the voxel and all its 26 neighbours inside the
+  volume belong to one feature $k$, $T_k(x)$ (the ``"feature"`` value);
+  otherwise the opacity-weighted mean over the $3^3$ neighbourhood, the voxel
+  itself included (section 4.2, Figure 3b),
 
   $$ \mathrm{AO}(x) = \frac{\sum_i \alpha_i\, T_{f(x^i)}(x^i)}{\sum_i \alpha_i}, $$
 
   with $\alpha_i$ the opacity of neighbour $x^i$'s feature there (empty voxels
-  weigh 0); a neighbourhood with no feature at all takes the ``"max"`` value.
+  weigh 0, voxels outside the volume are left out); a neighbourhood with no
+  feature, or whose opacities sum to less than the dtype's epsilon, takes the
+  ``"max"`` value (the mean's derivative grows as the inverse of that sum). The
+  paper does not say whether the voxel itself counts; here it does in both
+  cases.
 
 Every $T_k$ is :func:`~volshade.lao.lao` of $\alpha_k$, so it is exact, gather-free
 and differentiable in the radius, the offset, the directional weights and (through
 the opacities) the transfer functions' control values and the volume. The features
-are marched one after the other (``lax.map``): one compiled march whatever $n_f$,
-and the peak memory of one :func:`~volshade.lao.lao` call plus $2 n_f$ volumes.
+are marched one after the other (``lax.map``): one compiled march whatever $n_f$;
+the forward pass holds one :func:`~volshade.lao.lao` call's memory plus $2 n_f$
+volumes, and reverse mode keeps each feature's march inputs as well.
 
 **Bricking** (section 4.3): with ``brick_size`` each feature's march skips the
 bricks with none of *that* feature's opacity within reach, which is the paper's
@@ -59,10 +69,9 @@ import jax.numpy as jnp
 from jax import lax
 
 from . import _checks
-from ._numerics import safe_div
 from ._types import Array, ArrayLike, Float, Int, Volume
 from .lao import LocalAmbientOcclusion, lao
-from .transfer import Feature, TransferFunction, feature_opacities
+from .transfer import Feature, TransferFunction, _feature_tuple, feature_opacities
 
 _WHERE = "volshade.feature_ao"
 _NO_FEATURE = -1
@@ -75,10 +84,25 @@ def _fold(op, stack: Array) -> Array:
 
 
 def feature_labels(opacities: Float[Array, "F D H W"]) -> Int[Array, "D H W"]:
-    """The feature $f(x)$ of every voxel: the index of the largest opacity (the first
-    on ties), or -1 where every feature is transparent."""
+    """The feature $f(x)$ of every voxel (section 4.2).
+
+    Args:
+        opacities: ``(F, D, H, W)`` opacity of each feature.
+
+    Returns:
+        ``(D, H, W)`` index of the feature of largest opacity (the first on ties), or
+        -1 where every feature is transparent.
+    """
     return jnp.where(_fold(jnp.maximum, opacities) > 0, jnp.argmax(opacities, axis=0),
                      _NO_FEATURE)
+
+
+def _own(ao: Array, labels: Array, fallback: Array) -> Array:
+    """$T_{f(x)}(x)$, and ``fallback`` where $x$ has no feature."""
+    own = fallback
+    for k in range(ao.shape[0]):
+        own = jnp.where(labels == k, ao[k], own)
+    return own
 
 
 def _max_occlusion(ao: Array, opacities: Array) -> Array:
@@ -86,18 +110,14 @@ def _max_occlusion(ao: Array, opacities: Array) -> Array:
 
 
 def _own_feature(ao: Array, opacities: Array) -> Array:
-    labels = feature_labels(opacities)
-    own = _max_occlusion(ao, opacities)  # for voxels of no feature
-    for k in range(ao.shape[0]):
-        own = jnp.where(labels == k, ao[k], own)
-    return own
+    return _own(ao, feature_labels(opacities), _max_occlusion(ao, opacities))
 
 
-def _box(x: Array, op, padding: str) -> Array:
+def _box(x: Array, op, mode: str) -> Array:
     """``op`` (associative) over the 3x3x3 neighbourhood of every voxel, separably;
-    outside the volume the neighbours are 0 (``padding="zero"``) or the nearest voxel
-    (``"edge"``)."""
-    x = jnp.pad(x, 1, mode="edge" if padding == "edge" else "constant")
+    outside the volume the neighbours are 0 (``mode="constant"``) or the nearest
+    voxel (``"edge"``), as ``jnp.pad`` pads."""
+    x = jnp.pad(x, 1, mode=mode)
     for axis in range(3):
         n = x.shape[axis] - 2
         x = op(op(lax.slice_in_dim(x, 0, n, axis=axis), lax.slice_in_dim(x, 1, n + 1, axis=axis)),
@@ -107,17 +127,18 @@ def _box(x: Array, op, padding: str) -> Array:
 
 def _neighbourhood(ao: Array, opacities: Array) -> Array:
     labels = feature_labels(opacities)
-    own = _own_feature(ao, opacities)
+    fallback = _max_occlusion(ao, opacities)
+    own = _own(ao, labels, fallback)
     weight = _fold(jnp.maximum, opacities)  # the opacity of each voxel's own feature
-    numerator = _box(weight * own, jnp.add, "zero")
-    denominator = _box(weight, jnp.add, "zero")
+    numerator = _box(weight * own, jnp.add, "constant")
+    denominator = _box(weight, jnp.add, "constant")
     # an edge-padded neighbour is the nearest voxel inside, itself a neighbour: so this
-    # asks whether every neighbour inside the volume has the voxel's feature
-    low = _box(labels, jnp.minimum, "edge")
-    high = _box(labels, jnp.maximum, "edge")
-    uniform = (low == high) & (labels != _NO_FEATURE)
-    mixed = jnp.where(denominator > 0, safe_div(numerator, denominator),
-                      _max_occlusion(ao, opacities))
+    # asks whether every neighbour inside the volume has the voxel's feature (a
+    # neighbourhood of no feature gets `own`, which is then the fallback too)
+    uniform = _box(labels, jnp.minimum, "edge") == _box(labels, jnp.maximum, "edge")
+    # below eps the mean's derivative (of order 1 / denominator) would overflow
+    enough = denominator > jnp.finfo(denominator.dtype).eps
+    mixed = jnp.where(enough, numerator / jnp.where(enough, denominator, 1), fallback)
     return jnp.where(uniform, own, mixed)
 
 
@@ -185,7 +206,7 @@ def feature_ao(
     samples: int = 16,
     merge: str = "max",
     base: TransferFunction | None = None,
-    step: float | ArrayLike | None = None,
+    step: float | None = None,
     weights: Float[ArrayLike, " L"] | None = None,
     opacity_correction: bool = False,
     brick_size: int | None = None,
@@ -210,7 +231,7 @@ def feature_ao(
         merge: ``"max"`` (maximum occlusion, the paper's choice), ``"feature"`` or
             ``"neighbourhood"`` (:data:`MERGES`, :func:`merge_feature_ao`).
         base: the transfer function that interval features select from.
-        step: segment length (mm) the features' opacities are corrected to
+        step: segment length (mm, > 0) the features' opacities are corrected to
             (:meth:`~volshade.TransferFunction.opacity`); with
             ``opacity_correction``, pass the voxel size so that each opacity is that
             of a one-voxel step, as :func:`~volshade.lao.lao` reads it. ``None``
@@ -221,9 +242,10 @@ def feature_ao(
         least float32).
 
     Raises:
-        ValueError: no features, an interval feature without ``base``, an unknown
-            ``merge``, and every error of :func:`~volshade.lao.lao`.
-        TypeError: a feature that is neither kind.
+        ValueError: no features, an interval feature without ``base``, a bad ``step``,
+            an unknown ``merge``, and every error of :func:`~volshade.lao.lao`.
+        TypeError: ``features`` not a list of features, a ``base`` that is not a
+            transfer function.
 
     References:
         Ancel, Dischler, Mongenet, "Feature-driven ambient occlusion for direct
@@ -238,8 +260,9 @@ def feature_ao(
         >>> ao.shape
         (16, 16, 16)
     """
-    operator = _checks.option(merge, MERGES, "merge", _WHERE)
-    opacities = feature_opacities(volume, features, base=base, step=step)
+    _checks.option(merge, MERGES, "merge", _WHERE)
+    opacities = feature_opacities(volume, _feature_tuple(features, _WHERE), base=base,
+                                  step=step)
 
     def one(alpha):
         return lao(alpha, directions=directions, radius=radius, offset=offset,
@@ -247,15 +270,21 @@ def feature_ao(
                    brick_size=brick_size, max_radius=max_radius,
                    implementation=implementation)
 
-    # one feature at a time: one compiled march, and one march's memory
-    return operator(lax.map(one, opacities), opacities)
+    return _merged(opacities, one, merge)
+
+
+def _merged(opacities: Array, ao_of: Callable[[Array], Array], merge: str) -> Array:
+    """``ao_of`` of each feature's opacity, merged: one feature at a time (``lax.map``),
+    so one compiled march and one march's memory whatever the number of features."""
+    return MERGES[merge](lax.map(ao_of, opacities), opacities)
 
 
 class FeatureAmbientOcclusion(eqx.Module):
-    """Parameters of :func:`feature_ao` as a Module: the features (their transfer
-    functions' control values and interval ends are leaves a fit can change), the
-    shared :class:`~volshade.LocalAmbientOcclusion` parameters and the merge operator
-    (static).
+    """Parameters of :func:`feature_ao` as a Module: the features, the shared
+    :class:`~volshade.LocalAmbientOcclusion` parameters (radius, offset and weights are
+    leaves a fit can change) and the merge operator (static). Transfer-function
+    features get gradients through their control values; interval ends select voxels,
+    so theirs is zero.
 
     Example:
         >>> tf = vs.transfer.preset("shells")
@@ -273,14 +302,7 @@ class FeatureAmbientOcclusion(eqx.Module):
     def __init__(self, features: Sequence[Feature], *,
                  lao: LocalAmbientOcclusion | None = None, merge: str = "max"):
         where = "volshade.FeatureAmbientOcclusion"
-        features = tuple(features)
-        if not features:
-            raise ValueError(f"{where}: `features` is empty; pass at least one feature.")
-        for i, feature in enumerate(features):
-            if not isinstance(feature, Feature):
-                raise TypeError(f"{where}: features[{i}] must be a TransferFunction or "
-                                f"IntervalFeature, got {type(feature).__name__}.")
-        self.features = features
+        self.features = _feature_tuple(features, where)
         self.lao = LocalAmbientOcclusion() if lao is None else lao
         if not isinstance(self.lao, LocalAmbientOcclusion):
             raise TypeError(f"{where}: `lao` must be a volshade.LocalAmbientOcclusion, got "
@@ -289,12 +311,8 @@ class FeatureAmbientOcclusion(eqx.Module):
         self.merge = merge
 
     def __call__(self, volume: Volume, *, base: TransferFunction | None = None,
-                 step: float | ArrayLike | None = None) -> Volume:
-        """Feature-driven AO of ``volume``: :func:`feature_ao` with these parameters."""
-        p = self.lao
-        return feature_ao(volume, features=self.features, directions=p.directions,
-                          radius=p.radius, offset=p.offset, samples=p.samples,
-                          weights=p.weights, opacity_correction=p.opacity_correction,
-                          brick_size=p.brick_size, max_radius=p.max_radius,
-                          implementation=p.implementation, merge=self.merge, base=base,
-                          step=step)
+                 step: float | None = None) -> Volume:
+        """Feature-driven AO of ``volume``: :func:`feature_ao` with these parameters
+        (``base`` and ``step`` as there)."""
+        return _merged(feature_opacities(volume, self.features, base=base, step=step),
+                       self.lao, self.merge)

@@ -71,6 +71,7 @@ backward pass as one FFT convolution, so bricked gradients equal unbricked ones.
 
 import functools
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -535,44 +536,124 @@ def _concrete(x) -> float | None:
     return float(arr)
 
 
-def _directions_array(directions, dtype) -> Array:
+def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
     if isinstance(directions, int | np.integer) and not isinstance(directions, bool):
         if directions < 1:
-            raise ValueError(f"{_WHERE}: `directions` must be >= 1 rays (or an (L, 3) array), "
+            raise ValueError(f"{where}: `directions` must be >= 1 rays (or an (L, 3) array), "
                              f"got {directions}.")
         directions = _directions.fibonacci(int(directions))
     try:
         dirs = jnp.asarray(directions)
     except TypeError as err:
-        raise TypeError(f"{_WHERE}: `directions` must be an (L, 3) array of unit vectors "
+        raise TypeError(f"{where}: `directions` must be an (L, 3) array of unit vectors "
                         f"(e.g. `volshade.directions.icosphere(1)`) or an int L, "
                         f"got {type(directions).__name__}.") from err
     if dirs.ndim != 2 or dirs.shape[-1] != 3:
-        raise ValueError(f"{_WHERE}: `directions` must have shape (L, 3) in (d, h, w) order, "
+        raise ValueError(f"{where}: `directions` must have shape (L, 3) in (d, h, w) order, "
                          f"got {tuple(dirs.shape)}; use `volshade.directions.fibonacci(L)`.")
     if dirs.shape[0] == 0:
-        raise ValueError(f"{_WHERE}: `directions` is empty (L = 0); pass at least one "
+        raise ValueError(f"{where}: `directions` is empty (L = 0); pass at least one "
                          f"direction, e.g. `volshade.directions.icosphere(0)` (12 rays).")
     dirs = dirs.astype(dtype)
     norm = safe_norm(dirs, axis=-1, keepdims=True)
     dirs = eqx.error_if(dirs, ~jnp.all(jnp.isfinite(dirs)) | jnp.any(norm == 0),
-                        f"{_WHERE}: `directions` holds a zero or non-finite vector; "
+                        f"{where}: `directions` holds a zero or non-finite vector; "
                         f"every direction must be a non-zero finite 3-vector.")
     return dirs / jnp.where(norm == 0, 1, norm)
 
 
-def _scalar(value, name: str, dtype) -> Array:
+def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
     if isinstance(value, bool | np.bool_):
-        raise TypeError(f"{_WHERE}: `{name}` must be a number (voxels), got {value!r}.")
+        raise TypeError(f"{where}: `{name}` must be a number (voxels), got {value!r}.")
     try:
         arr = jnp.asarray(value, dtype=dtype)
     except TypeError as err:
-        raise TypeError(f"{_WHERE}: `{name}` must be a number (voxels), "
+        raise TypeError(f"{where}: `{name}` must be a number (voxels), "
                         f"got {type(value).__name__}.") from err
     if arr.shape != ():
-        raise ValueError(f"{_WHERE}: `{name}` must be a scalar (voxels), got shape "
+        raise ValueError(f"{where}: `{name}` must be a scalar (voxels), got shape "
                          f"{arr.shape}; for several values use `jax.vmap`.")
     return arr
+
+
+class _Prepared(NamedTuple):
+    """Validated inputs of a march (see :func:`_prepare`)."""
+
+    alpha: Array
+    directions: Array
+    weights: Array
+    radius: Array
+    offset: Array
+    pad: tuple[int, int, int]
+    samples: int
+    correction: bool
+    brick_size: int | None
+
+
+def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_correction,
+             brick_size, max_radius, where: str) -> _Prepared:
+    """Check and normalise :func:`lao`'s arguments (errors name ``where``): the opacity,
+    unit directions, weights summing to 1, radius and offset as scalars of the opacity's
+    dtype, and the zero padding the march needs."""
+    alpha = _checks.volume(alpha, "alpha", where, unit_range=True)
+    dtype = alpha.dtype
+    samples = _checks.positive_int(samples, "samples", where)
+    if not isinstance(opacity_correction, bool):
+        raise TypeError(f"{where}: `opacity_correction` must be True or False, "
+                        f"got {opacity_correction!r}.")
+    if brick_size is not None:
+        brick_size = _checks.positive_int(brick_size, "brick_size", where)
+    if max_radius is not None:
+        max_radius = _checks.positive_float(max_radius, "max_radius", where)
+    dirs = lax.stop_gradient(_directions_array(directions, dtype, where))
+    n_dirs = dirs.shape[0]
+
+    r_value, a_value = _concrete(radius), _concrete(offset)
+    if a_value is not None and not (np.isfinite(a_value) and a_value >= 0):
+        raise ValueError(f"{where}: `offset` must be a finite number >= 0 (voxels), "
+                         f"got {offset!r}.")
+    if r_value is not None:
+        if not np.isfinite(r_value):
+            raise ValueError(f"{where}: `radius` must be finite (voxels), got {radius!r}.")
+        if a_value is not None and r_value <= a_value:
+            raise ValueError(f"{where}: `radius` ({r_value}) must be > `offset` ({a_value}); "
+                             f"increase the radius or lower the offset.")
+        if max_radius is not None and r_value > max_radius:
+            raise ValueError(f"{where}: `radius` ({r_value}) exceeds `max_radius` "
+                             f"({max_radius}); raise `max_radius`.")
+    radius = _scalar(radius, "radius", dtype, where)
+    offset = _scalar(offset, "offset", dtype, where)
+    alpha = eqx.error_if(alpha, ~(offset >= 0) | ~jnp.isfinite(radius),
+                         f"{where}: `offset` must be >= 0 and `radius` finite (voxels).")
+    alpha = eqx.error_if(alpha, ~(radius > offset),
+                         f"{where}: `radius` must be > `offset`; increase the radius or "
+                         f"lower the offset.")
+    if max_radius is not None:
+        alpha = eqx.error_if(alpha, radius > max_radius,
+                             f"{where}: `radius` exceeds `max_radius` ({max_radius}); "
+                             f"raise `max_radius`.")
+
+    if weights is None:
+        weights = jnp.full((n_dirs,), 1 / n_dirs, dtype)
+    else:
+        weights = _checks.as_float_array(weights, "weights", where).astype(dtype)
+        if weights.shape != (n_dirs,):
+            raise ValueError(f"{where}: `weights` must have shape (L,) = ({n_dirs},), one "
+                             f"per direction, got {tuple(weights.shape)}.")
+        total = jnp.sum(weights)
+        weights = eqx.error_if(
+            weights, ~jnp.all(jnp.isfinite(weights)) | jnp.any(weights < 0) | ~(total > 0),
+            f"{where}: `weights` must be finite, >= 0 and not all zero.")
+        weights = weights / jnp.where(total > 0, total, 1)
+
+    bound = max_radius if max_radius is not None else r_value
+    # a padding as wide as the (brick-aligned) volume makes clamped reads land in zeros
+    extent = (alpha.shape if brick_size is None
+              else tuple(-(-s // brick_size) * brick_size for s in alpha.shape))
+    pad = tuple(e if bound is None else min(e, math.ceil(bound) + 1) for e in extent)
+
+    return _Prepared(alpha, dirs, weights, radius, offset, pad, samples, opacity_correction,
+                     brick_size)
 
 
 def lao(
@@ -668,66 +749,12 @@ def lao(
         >>> ao.shape, float(ao[0, 0, 0])
         ((16, 16, 16), 1.0)
     """
-    alpha = _checks.volume(alpha, "alpha", _WHERE, unit_range=True)
-    dtype = alpha.dtype
-    samples = _checks.positive_int(samples, "samples", _WHERE)
-    if not isinstance(opacity_correction, bool):
-        raise TypeError(f"{_WHERE}: `opacity_correction` must be True or False, "
-                        f"got {opacity_correction!r}.")
-    if brick_size is not None:
-        brick_size = _checks.positive_int(brick_size, "brick_size", _WHERE)
-    if max_radius is not None:
-        max_radius = _checks.positive_float(max_radius, "max_radius", _WHERE)
     _checks.option(implementation, _IMPLEMENTATIONS, "implementation", _WHERE)
-    dirs = lax.stop_gradient(_directions_array(directions, dtype))
-    n_dirs = dirs.shape[0]
-
-    r_value, a_value = _concrete(radius), _concrete(offset)
-    if a_value is not None and not (np.isfinite(a_value) and a_value >= 0):
-        raise ValueError(f"{_WHERE}: `offset` must be a finite number >= 0 (voxels), "
-                         f"got {offset!r}.")
-    if r_value is not None:
-        if not np.isfinite(r_value):
-            raise ValueError(f"{_WHERE}: `radius` must be finite (voxels), got {radius!r}.")
-        if a_value is not None and r_value <= a_value:
-            raise ValueError(f"{_WHERE}: `radius` ({r_value}) must be > `offset` ({a_value}); "
-                             f"increase the radius or lower the offset.")
-        if max_radius is not None and r_value > max_radius:
-            raise ValueError(f"{_WHERE}: `radius` ({r_value}) exceeds `max_radius` "
-                             f"({max_radius}); raise `max_radius`.")
-    radius = _scalar(radius, "radius", dtype)
-    offset = _scalar(offset, "offset", dtype)
-    alpha = eqx.error_if(alpha, ~(offset >= 0) | ~jnp.isfinite(radius),
-                         f"{_WHERE}: `offset` must be >= 0 and `radius` finite (voxels).")
-    alpha = eqx.error_if(alpha, ~(radius > offset),
-                         f"{_WHERE}: `radius` must be > `offset`; increase the radius or "
-                         f"lower the offset.")
-    if max_radius is not None:
-        alpha = eqx.error_if(alpha, radius > max_radius,
-                             f"{_WHERE}: `radius` exceeds `max_radius` ({max_radius}); "
-                             f"raise `max_radius`.")
-
-    if weights is None:
-        weights = jnp.full((n_dirs,), 1 / n_dirs, dtype)
-    else:
-        weights = _checks.as_float_array(weights, "weights", _WHERE).astype(dtype)
-        if weights.shape != (n_dirs,):
-            raise ValueError(f"{_WHERE}: `weights` must have shape (L,) = ({n_dirs},), one "
-                             f"per direction, got {tuple(weights.shape)}.")
-        total = jnp.sum(weights)
-        weights = eqx.error_if(
-            weights, ~jnp.all(jnp.isfinite(weights)) | jnp.any(weights < 0) | ~(total > 0),
-            f"{_WHERE}: `weights` must be finite, >= 0 and not all zero.")
-        weights = weights / jnp.where(total > 0, total, 1)
-
-    bound = max_radius if max_radius is not None else r_value
-    # a padding as wide as the (brick-aligned) volume makes clamped reads land in zeros
-    extent = (alpha.shape if brick_size is None
-              else tuple(-(-s // brick_size) * brick_size for s in alpha.shape))
-    pad = tuple(e if bound is None else min(e, math.ceil(bound) + 1) for e in extent)
-
-    return _lao(alpha, dirs, weights, radius, offset, pad=pad, samples=samples,
-                correction=opacity_correction, brick_size=brick_size,
+    p = _prepare(alpha, directions=directions, radius=radius, offset=offset, samples=samples,
+                 weights=weights, opacity_correction=opacity_correction,
+                 brick_size=brick_size, max_radius=max_radius, where=_WHERE)
+    return _lao(p.alpha, p.directions, p.weights, p.radius, p.offset, pad=p.pad,
+                samples=p.samples, correction=p.correction, brick_size=p.brick_size,
                 max_active=_MAX_ACTIVE_FRACTION, implementation=implementation)
 
 

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 from . import _checks
 from ._types import Array, Float
 from .camera import Camera
+from .clip import Clip, clip_mask
 from .composition import COMPOSITORS
 from .feature_ao import FeatureAmbientOcclusion
 from .importance import Focus, Importance
@@ -50,8 +51,18 @@ def _voxel_step(scene: "Scene", params) -> float | None:
     return math.prod(scene.spacing) ** (1 / 3) if params.opacity_correction else None
 
 
+def _kept(scene: "Scene") -> Array | None:
+    """1 where the scene's clip keeps the voxel, 0 where it removes it (None: no clip)."""
+    if scene.clip is None:
+        return None
+    return jnp.where(clip_mask(scene.volume.shape, scene.clip), 0.0, 1.0).astype(
+        jnp.promote_types(scene.volume.dtype, jnp.float32))
+
+
 def _lao_ambient(scene: "Scene") -> Array:
-    return scene.lao(scene.transfer.opacity(scene.volume, step=_voxel_step(scene, scene.lao)))
+    alpha = scene.transfer.opacity(scene.volume, step=_voxel_step(scene, scene.lao))
+    kept = _kept(scene)
+    return scene.lao(alpha if kept is None else alpha * kept.astype(alpha.dtype))
 
 
 def _feature_ao_ambient(scene: "Scene") -> Array:
@@ -130,6 +141,13 @@ class Scene(eqx.Module):
         importance: :class:`~volshade.importance.Importance` weights.
         focus: optional :class:`~volshade.importance.Focus` (focus plus context).
         background: ``(3,)`` RGB background colour.
+        clip: optional clip shape (:mod:`volshade.clip`): the voxels inside it are
+            removed from the render (their opacity scaled by 0, sampled
+            trilinearly) and from the opacity ``ambient="lao"`` sees. With a moving
+            clip, compute the ambient volume with
+            :func:`~volshade.cao.contextual_ao` and pass it as
+            ``ambient="volume"``. ``ambient="feature_ao"`` and ``"obscurance"`` do
+            not take the clip into account and are refused with it.
 
     Example:
         >>> vol = jnp.zeros((8, 8, 8))
@@ -157,6 +175,7 @@ class Scene(eqx.Module):
     focus: Focus | None = None
     background: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf,
                                               default=(0.0, 0.0, 0.0))
+    clip: Clip | None = None
 
     def __check_init__(self):
         _checks.as_float_array(self.volume, "volume", _WHERE)
@@ -178,6 +197,14 @@ class Scene(eqx.Module):
                              f"{type(self.feature_ao).__name__}.")
         if self.focus is not None and self.composition != "importance":
             raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
+        if self.clip is not None:
+            if not isinstance(self.clip, Clip):
+                raise TypeError(f"{_WHERE}: `clip` must be a volshade clip shape (e.g. "
+                                f"volshade.SphereClip), got {type(self.clip).__name__}.")
+            if self.ambient in ("feature_ao", "obscurance"):
+                raise ValueError(f"{_WHERE}: ambient={self.ambient!r} does not take `clip` "
+                                 f"into account; compute the ambient volume of the clipped "
+                                 f"volume yourself and pass ambient='volume'.")
         if jnp.shape(self.background) != (3,):
             raise ValueError(f"{_WHERE}: `background` must be an RGB triple, "
                              f"got shape {jnp.shape(self.background)}.")
@@ -243,6 +270,9 @@ def render(scene: Scene, camera: Camera) -> Float[Array, "H W 4"]:
     scene, camera = _finite_parameters(scene, camera)
     ambient = AMBIENT[scene.ambient](scene)
     opacity_scale = MODULATION[scene.modulation](scene)
+    kept = _kept(scene)
+    if kept is not None:
+        opacity_scale = kept if opacity_scale is None else opacity_scale * kept
     focus = None if scene.focus is None else scene.focus.weights(camera.image_shape)
     return march(scene.volume, scene.transfer, camera, spacing=scene.spacing, step=scene.step,
                  shading=scene.shading, phong=scene.phong, ambient=ambient,

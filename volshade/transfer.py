@@ -22,6 +22,7 @@ selects the part of a base transfer function's opacity lying inside it.
 """
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -194,40 +195,63 @@ class IntervalFeature(eqx.Module):
 Feature = TransferFunction | IntervalFeature
 
 
+def _feature_tuple(features: Any, where: str) -> tuple[Feature, ...]:
+    """``features`` as a non-empty tuple of features, or a clear error naming ``where``."""
+    if isinstance(features, Feature):
+        raise TypeError(f"{where}: `features` must be a list of features; for one, pass "
+                        f"[{type(features).__name__}(...)].")
+    try:
+        features = tuple(features)
+    except TypeError as err:
+        raise TypeError(f"{where}: `features` must be a list of TransferFunction or "
+                        f"IntervalFeature, got {type(features).__name__}.") from err
+    if not features:
+        raise ValueError(f"{where}: `features` is empty; pass at least one feature.")
+    for i, feature in enumerate(features):
+        if not isinstance(feature, Feature):
+            raise TypeError(f"{where}: features[{i}] must be a TransferFunction or "
+                            f"IntervalFeature, got {type(feature).__name__}.")
+    return features
+
+
 def feature_opacities(
     volume: Float[Array, "D H W"],
     features: Sequence[Feature],
     *,
     base: TransferFunction | None = None,
-    step: float | Array | None = None,
+    step: float | None = None,
 ) -> Float[Array, "F D H W"]:
     """Stack the opacity volume of each feature (transfer functions or intervals of ``base``).
 
-    ``step`` (mm), if given, corrects every opacity to that segment length, as
+    ``step`` (mm, > 0), if given, corrects every opacity to that segment length, as
     :meth:`TransferFunction.opacity` does.
 
     Raises:
-        ValueError: no features, or an interval feature without a ``base``.
+        ValueError: no features, an interval feature without a ``base``, a ``step``
+            that is not a finite number > 0.
+        TypeError: ``features`` not a list of features, ``base`` not a
+            :class:`TransferFunction`.
     """
     where = "volshade.transfer.feature_opacities"
+    features = _feature_tuple(features, where)
     volume = _checks.volume(volume, "volume", where)
-    if len(features) == 0:
-        raise ValueError(f"{where}: `features` is empty; pass at least one feature.")
+    if base is not None and not isinstance(base, TransferFunction):
+        raise TypeError(f"{where}: `base` must be a volshade.TransferFunction (the one the "
+                        f"interval features select from), got {type(base).__name__}.")
+    if step is not None:
+        step = _checks.positive_float(step, "step", where)
     out = []
     base_opacity = None  # classified once for all the intervals
     for i, feature in enumerate(features):
         if isinstance(feature, TransferFunction):
             out.append(feature.opacity(volume, step=step))
-        elif isinstance(feature, IntervalFeature):
-            if base is None:
-                raise ValueError(f"{where}: features[{i}] is an interval; pass `base=` "
-                                 f"the transfer function it selects from.")
-            if base_opacity is None:
-                base_opacity = base.opacity(volume, step=step)
-            out.append(feature._select(volume, base_opacity))
-        else:
-            raise TypeError(f"{where}: features[{i}] must be a TransferFunction or "
-                            f"IntervalFeature, got {type(feature).__name__}.")
+            continue
+        if base is None:
+            raise ValueError(f"{where}: features[{i}] is an interval; pass `base=` "
+                             f"the transfer function it selects from.")
+        if base_opacity is None:
+            base_opacity = base.opacity(volume, step=step)
+        out.append(feature._select(volume, base_opacity))
     return jnp.stack(out)
 
 

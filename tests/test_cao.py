@@ -1,0 +1,172 @@
+"""Tests of volshade.cao: contextual AO equals a full LAO recompute under the clip, in
+values and gradients, for every clip shape, moving, under jit, vmap and grad."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import check_grad_fd
+
+import volshade as vs
+from volshade.cao import affected_fraction
+
+RNG = np.random.default_rng(5)
+ALPHA = jnp.asarray(RNG.uniform(0, 1, (24, 22, 26)) ** 3)
+DIRS = vs.directions.icosphere(0)
+KW = dict(directions=DIRS, radius=3.5, offset=0.5, samples=6)
+ROTATION = np.linalg.qr(RNG.normal(size=(3, 3)))[0]
+CLIPS = {
+    "sphere": vs.SphereClip(centre=(5.0, 6.0, 7.0), radius=3.5),
+    "box": vs.BoxClip(centre=(18.0, 9.0, 14.0), half_size=(3.0, 4.5, 2.0), rotation=ROTATION),
+    "torus": vs.TorusClip(centre=(12.0, 11.0, 13.0), major=4.0, minor=1.2, rotation=ROTATION),
+    "half-space": vs.HalfSpaceClip(centre=(20.0, 0.0, 0.0)),
+}
+
+
+def _full(alpha, clip, **kw):
+    """The reference: LAO of the clipped opacity, every voxel marched."""
+    return vs.lao(vs.clip_opacity(alpha, clip), **kw)
+
+
+@pytest.mark.parametrize("name", sorted(CLIPS))
+def test_equals_a_full_recompute(name):
+    clip = CLIPS[name]
+    unclipped = vs.lao(ALPHA, **KW)
+    got = vs.contextual_ao(ALPHA, clip=clip, unclipped=unclipped, brick_size=4, **KW)
+    # the clip changes a part of the volume, and only that part is marched again
+    full = _full(ALPHA, clip, **KW)
+    assert 0.01 < float(jnp.mean(jnp.abs(full - unclipped) > 1e-9)) < 0.6
+    assert 0 < affected_fraction(ALPHA.shape, clip, radius=3.5, brick_size=4) <= 0.5
+    np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("correction", [False, True])
+def test_float32_weights_and_correction(correction):
+    alpha = ALPHA.astype(jnp.float32)
+    weights = jnp.asarray(RNG.uniform(0.2, 2.0, DIRS.shape[0]), jnp.float32)
+    kw = dict(KW, weights=weights, opacity_correction=correction)
+    clip = CLIPS["torus"]
+    got = vs.contextual_ao(alpha, clip=clip, unclipped=vs.lao(alpha, **kw), **kw)
+    assert got.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(got), np.asarray(_full(alpha, clip, **kw)), rtol=0,
+                               atol=1e-6)
+
+
+def test_large_clip_marches_the_whole_volume_and_still_agrees():
+    clip = vs.SphereClip(centre=(12.0, 11.0, 13.0), radius=9.0)
+    assert affected_fraction(ALPHA.shape, clip, radius=3.5) > 0.5  # the dense branch
+    got = vs.contextual_ao(ALPHA, clip=clip, unclipped=vs.lao(ALPHA, **KW), **KW)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(_full(ALPHA, clip, **KW)),
+                               rtol=0, atol=1e-12)
+
+
+def test_hard_cases():
+    unclipped = vs.lao(ALPHA, **KW)
+    # a clip outside the volume removes nothing: the unclipped AO, exactly
+    away = vs.SphereClip(centre=(-20.0, -20.0, -20.0), radius=2.0)
+    np.testing.assert_array_equal(
+        np.asarray(vs.contextual_ao(ALPHA, clip=away, unclipped=unclipped, **KW)),
+        np.asarray(unclipped))
+    # a clip that removes everything: nothing occludes
+    everything = vs.HalfSpaceClip(centre=(-1.0, 0.0, 0.0))
+    out = vs.contextual_ao(ALPHA, clip=everything, unclipped=unclipped, **KW)
+    assert np.all(np.asarray(out) == 1.0)
+    # one voxel, clipped or not; M = 1
+    one = jnp.full((1, 1, 1), 0.7)
+    kept = vs.SphereClip(centre=(5.0, 5.0, 5.0), radius=1.0)
+    assert float(vs.contextual_ao(one, clip=kept, unclipped=vs.lao(one, **KW), **KW)[0, 0, 0]) \
+        == float(vs.lao(one, **KW)[0, 0, 0])
+    m1 = dict(KW, samples=1)
+    assert np.all(np.asarray(vs.contextual_ao(ALPHA, clip=CLIPS["box"],
+                                              unclipped=vs.lao(ALPHA, **m1), **m1)) == 1.0)
+
+
+def test_moving_clip_under_jit_and_vmap_never_recompiles():
+    unclipped = vs.lao(ALPHA, **KW)
+    traces = []
+
+    @jax.jit
+    def frame(centre):
+        traces.append(1)
+        return vs.contextual_ao(ALPHA, clip=vs.SphereClip(centre=centre, radius=3.0),
+                                unclipped=unclipped, **KW)
+
+    path = jnp.asarray([[4.0, 5.0, 6.0], [12.0, 11.0, 6.0], [20.0, 17.0, 20.0]])
+    frames = [frame(c) for c in path]
+    assert len(traces) == 1
+    for c, got in zip(path, frames, strict=True):
+        full = _full(ALPHA, vs.SphereClip(centre=c, radius=3.0), **KW)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=0, atol=1e-12)
+    batched = jax.vmap(frame)(path)
+    for got, single in zip(batched, frames, strict=True):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(single), rtol=0, atol=1e-12)
+
+
+def test_gradients_equal_the_full_recompute_and_finite_differences():
+    # unclipped computed inside the differentiated function: its gradient is that of
+    # the voxels the clip cannot change, under the clip too
+    clip = vs.SphereClip(centre=(2.0, 2.0, 2.0), radius=3.0)
+    alpha = ALPHA[:16, :16, :16]
+    w = jnp.asarray(RNG.normal(size=alpha.shape))
+    # random directions: no sample sits on a voxel boundary (a kink of the trilinear
+    # interpolation, where central differences and the gradient may differ)
+    kw = dict(KW, directions=vs.directions.random_polar(5, key=jax.random.key(2)),
+              max_radius=5.0)
+    kw.pop("radius")
+
+    def contextual(alpha, radius):
+        unclipped = vs.lao(alpha, radius=radius, **kw)
+        return jnp.sum(w * vs.contextual_ao(alpha, clip=clip, unclipped=unclipped,
+                                            radius=radius, brick_size=4, **kw))
+
+    def full(alpha, radius):
+        return jnp.sum(w * _full(alpha, clip, radius=radius, **kw))
+
+    assert 0 < affected_fraction(alpha.shape, clip, radius=3.5, brick_size=4) <= 0.5
+    r = jnp.asarray(3.5)
+    got = jax.jit(jax.grad(contextual, argnums=(0, 1)))(alpha, r)
+    ref = jax.jit(jax.grad(full, argnums=(0, 1)))(alpha, r)
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(ref[0]), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(float(got[1]), float(ref[1]), rtol=1e-10)
+    check_grad_fd(jax.jit(lambda x: contextual(alpha, x[0])), jnp.asarray([3.5]), n_dirs=1)
+
+
+def test_bad_inputs_raise_clear_errors():
+    unclipped = vs.lao(ALPHA, **KW)
+    with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):
+        vs.contextual_ao(ALPHA, clip=None, unclipped=unclipped, **KW)
+    with pytest.raises(ValueError, match="`unclipped` must be the LAO of `alpha`"):
+        vs.contextual_ao(ALPHA, clip=CLIPS["box"], unclipped=unclipped[1:], **KW)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"`unclipped` must lie in \[0, 1\]"):
+        vs.contextual_ao(ALPHA, clip=CLIPS["box"], unclipped=unclipped + 1, **KW)
+    with pytest.raises(ValueError, match="volshade.contextual_ao: `radius`"):
+        vs.contextual_ao(ALPHA, clip=CLIPS["box"], unclipped=unclipped, directions=DIRS,
+                         radius=0.5, offset=1.0)
+    with pytest.raises(ValueError, match="`brick_size` must be >= 1"):
+        vs.contextual_ao(ALPHA, clip=CLIPS["box"], unclipped=unclipped, brick_size=0, **KW)
+
+
+def test_scene_clips_the_render_and_the_lao_ambient():
+    from volshade.scene import _lao_ambient
+
+    vol = vs.data.phantom("shells", shape=16).astype(jnp.float64)
+    tf = vs.transfer.preset("shells")
+    params = vs.LocalAmbientOcclusion(3.0, directions=12, samples=5)
+    clip = vs.SphereClip(centre=(8.0, 8.0, 16.0), radius=7.0)
+    scene = vs.Scene(volume=vol, transfer=tf, ambient="lao", lao=params, clip=clip,
+                     shading="phong")
+    np.testing.assert_allclose(np.asarray(_lao_ambient(scene)),
+                               np.asarray(params(vs.clip_opacity(tf.opacity(vol), clip))),
+                               atol=1e-12)
+    camera = vs.Camera.orbit(azimuth=90, elevation=0, image_shape=(16, 16))
+    render = eqx.filter_jit(vs.render)
+    clipped = np.asarray(render(vs.Scene(volume=vol, transfer=tf, clip=clip), camera))
+    whole = np.asarray(render(vs.Scene(volume=vol, transfer=tf), camera))
+    assert clipped[..., 3].sum() < 0.95 * whole[..., 3].sum()
+    gone = vs.Scene(volume=vol, transfer=tf, clip=vs.HalfSpaceClip(centre=(-1.0, 0.0, 0.0)))
+    assert np.all(np.asarray(render(gone, camera))[..., 3] == 0)
+    with pytest.raises(ValueError, match="does not take `clip` into account"):
+        vs.Scene(volume=vol, transfer=tf, ambient="obscurance", clip=clip)
+    with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):
+        vs.Scene(volume=vol, transfer=tf, clip="sphere")

@@ -1,0 +1,115 @@
+"""Tests of volshade.clip: exact signed distances, the clipped and affected masks."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import ndimage
+
+import volshade as vs
+
+RNG = np.random.default_rng(11)
+ROTATION = np.linalg.qr(RNG.normal(size=(3, 3)))[0]
+SHAPES = {
+    "sphere": vs.SphereClip(centre=(7.0, 8.5, 6.2), radius=4.3),
+    "box": vs.BoxClip(centre=(8.0, 7.0, 9.0), half_size=(2.5, 4.0, 1.5), rotation=ROTATION),
+    "torus": vs.TorusClip(centre=(8.0, 8.0, 8.0), major=4.5, minor=1.5, rotation=ROTATION),
+    "half-space": vs.HalfSpaceClip(centre=(8.0, 8.0, 8.0), rotation=ROTATION),
+}
+
+
+def _solid(name, points):
+    """Whether ``points`` (..., 3) lie inside the shape, by its definition."""
+    clip = SHAPES[name]
+    local = (points - np.asarray(clip.centre)) @ np.asarray(clip.rotation)
+    if name == "sphere":
+        return np.linalg.norm(local, axis=-1) <= float(clip.radius)
+    if name == "box":
+        return np.all(np.abs(local) <= np.asarray(clip.half_size), axis=-1)
+    if name == "torus":
+        ring = np.linalg.norm(local[..., 1:], axis=-1) - float(clip.major)
+        return ring ** 2 + local[..., 0] ** 2 <= float(clip.minor) ** 2
+    return local[..., 0] >= 0
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_signed_distance_is_the_distance_to_the_solid(name):
+    # brute force: the distance from each probe to a fine grid of points of the solid
+    # (outside) or of its complement (inside), within the grid's resolution
+    step = 0.2
+    axes = [np.arange(-1.0, 17.0 + step, step)] * 3
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = _solid(name, grid)
+    probes = RNG.uniform(2.0, 14.0, (40, 3))
+    phi = np.asarray(SHAPES[name].signed_distance(jnp.asarray(probes)))
+    for x, value in zip(probes, phi, strict=True):
+        other = grid[~inside] if _solid(name, x) else grid[inside]
+        brute = np.min(np.linalg.norm(other - x, axis=-1))
+        assert np.sign(value) == (-1 if _solid(name, x) else 1) or abs(value) < 1e-9
+        assert abs(abs(value) - brute) <= step * np.sqrt(3), (name, x, value, brute)
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_affected_voxels_hold_every_voxel_within_reach_of_a_clipped_one(name):
+    shape, radius = (17, 16, 18), 3.3
+    clipped = np.asarray(vs.clip_mask(shape, SHAPES[name]))
+    assert 0 < clipped.sum() < clipped.size
+    affected = np.asarray(vs.affected_mask(shape, SHAPES[name], radius=radius))
+    assert np.all(affected[clipped])
+    distance = ndimage.distance_transform_edt(~clipped)  # to the nearest clipped voxel
+    # LAO at x reads voxels less than R + sqrt(3) away; those x must all be affected
+    assert np.all(affected[distance < radius + np.sqrt(3)])
+    # and the bound is not wastefully loose: few affected voxels are much farther
+    assert np.mean(distance[affected] > radius + np.sqrt(3) + 1.5) < 0.05
+
+
+def test_clip_opacity_and_mask_by_hand():
+    mask = vs.clip_mask((9, 9, 9), vs.SphereClip(centre=(4.0, 4.0, 4.0), radius=1.0))
+    assert int(mask.sum()) == 7 and bool(mask[4, 4, 5]) and not bool(mask[4, 5, 5])
+    alpha = jnp.full((9, 9, 9), 0.5, jnp.float32)
+    out = vs.clip_opacity(alpha, vs.HalfSpaceClip(centre=(6.0, 0.0, 0.0)))
+    assert out.dtype == jnp.float32
+    assert np.all(np.asarray(out[6:]) == 0) and np.all(np.asarray(out[:6]) == 0.5)
+    flipped = vs.HalfSpaceClip(centre=(6.0, 0.0, 0.0), rotation=-np.eye(3))
+    assert np.all(np.asarray(vs.clip_opacity(alpha, flipped)[:7]) == 0)
+
+
+def test_moving_a_clip_does_not_recompile_and_vmaps():
+    traces = []
+
+    @jax.jit
+    def removed(centre):
+        traces.append(1)
+        return jnp.sum(vs.clip_mask((12, 12, 12), vs.SphereClip(centre=centre, radius=2.5)))
+
+    counts = [int(removed(jnp.asarray(c))) for c in ([3.0, 3.0, 3.0], [6.0, 6.0, 6.0],
+                                                      [0.0, 0.0, 0.0])]
+    assert len(traces) == 1 and counts[0] == counts[1] > counts[2] > 0
+    batched = jax.vmap(removed)(jnp.asarray([[3.0, 3.0, 3.0], [0.0, 0.0, 0.0]]))
+    assert [int(b) for b in batched] == [counts[0], counts[2]]
+
+
+def test_signed_distance_gradient_is_finite_at_the_centre():
+    for clip in SHAPES.values():
+        g = jax.grad(lambda p, c=clip: c.signed_distance(p))(jnp.asarray(clip.centre))
+        assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_bad_clips_raise_clear_errors():
+    with pytest.raises(ValueError, match="`radius` must be finite and > 0"):
+        vs.SphereClip(centre=(1.0, 2.0, 3.0), radius=0.0)
+    with pytest.raises(ValueError, match="`centre` must be 3 numbers"):
+        vs.SphereClip(centre=(1.0, 2.0), radius=1.0)
+    with pytest.raises(ValueError, match="orthonormal"):
+        vs.BoxClip(centre=(1.0, 2.0, 3.0), half_size=1.0, rotation=2 * np.eye(3))
+    with pytest.raises(ValueError, match=r"`rotation` must be a 3x3"):
+        vs.TorusClip(centre=(1.0, 2.0, 3.0), major=2.0, minor=1.0, rotation=np.eye(2))
+    with pytest.raises(ValueError, match="`half_size` must be finite and > 0"):
+        vs.BoxClip(centre=(1.0, 2.0, 3.0), half_size=(1.0, -1.0, 1.0))
+    with pytest.raises(ValueError, match=r"`shape` must be 3 positive ints"):
+        vs.clip_mask((4, 4), SHAPES["sphere"])
+    with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):
+        vs.clip_opacity(jnp.ones((4, 4, 4)), "sphere")
+    with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf"):
+        vs.clip_opacity(jnp.ones((4, 4, 4)).at[0, 0, 0].set(jnp.nan), SHAPES["sphere"])
