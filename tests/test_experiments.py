@@ -9,6 +9,8 @@ EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1] / "experiments"
 
 # script -> (figures it must write, (table, a line the table must hold))
 CASES = {
+    "contextual_ao_head.py": (["contextual_ao_head.png"],
+                              ("contextual_ao_head.md", "| clip centre (voxels) |")),
     "feature_ao_brain.py": (["feature_ao_brain.png", "feature_ao_brain_radius.png"],
                             ("feature_ao_brain.md", "| white matter |")),
     "lao_accuracy_cost.py": (["lao_accuracy_cost.png"],
@@ -17,7 +19,7 @@ CASES = {
                                   ("corner_obscurance_rho.md", "| sqrt |")),
 }
 
-NEEDS_DATA = {"feature_ao_brain.py"}  # skipped, with the reason, without the real data
+NEEDS_DATA = {"contextual_ao_head.py", "feature_ao_brain.py"}  # skipped, with the reason, without the real data
 
 
 @pytest.mark.slow

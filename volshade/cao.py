@@ -32,7 +32,7 @@ from jax import lax
 
 from . import _checks
 from ._types import Array, ArrayLike, Float, Volume
-from .clip import Clip, _clip, affected_mask, clip_mask
+from .clip import Clip, _clip, _removed, _voxel_distances, _within_reach, affected_mask
 from .lao import _MAX_ACTIVE_FRACTION, _bricked, _march, _prepare
 
 _WHERE = "volshade.contextual_ao"
@@ -119,7 +119,8 @@ def _brick_any(mask: Array, brick: int) -> Array:
 def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, samples,
                 correction, brick_size, max_active):
     """The validated computation, compiled once per shape and static options."""
-    clipped = jnp.where(clip_mask(alpha.shape, clip), jnp.zeros_like(alpha), alpha)
+    distances = _voxel_distances(alpha.shape, clip)
+    clipped = jnp.where(_removed(distances), jnp.zeros_like(alpha), alpha)
     if samples == 1:
         return jnp.ones_like(alpha)  # eq. 2 with M = 1: an empty product, clip or not
 
@@ -133,7 +134,7 @@ def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, s
         ao, skipped = _bricked(clipped, active, pad, brick_size, march)
         return jnp.where(skipped, unclipped, ao)
 
-    active = _brick_any(affected_mask(alpha.shape, clip, radius=radius), brick_size)
+    active = _brick_any(_within_reach(distances, radius), brick_size)
     return lax.cond(jnp.mean(active) <= max_active, sparse, dense, clipped)
 
 

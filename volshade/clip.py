@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import safe_norm
+from ._numerics import safe_sqrt
 from ._types import Array, ArrayLike, Bool, Float
 
 _REACH_MARGIN = 1e-3  # voxels: rounding of phi must not make an affected voxel look safe
@@ -63,6 +63,11 @@ def _positive(value, name: str, where: str) -> Array:
     return value
 
 
+def _hypot(*components: Array) -> Array:
+    """The Euclidean norm of the components, with a finite gradient at 0."""
+    return safe_sqrt(sum(c * c for c in components))
+
+
 def _lead(vector: Array, like: Array) -> Array:
     """``vector`` ``(3,)`` with leading unit axes to broadcast against ``like`` ``(..., 3)``."""
     return jnp.reshape(vector, (1,) * (like.ndim - 1) + (3,))
@@ -80,11 +85,13 @@ class Clip(eqx.Module):
         r"""Exact Euclidean signed distance $\phi$ (voxels) of ``points`` ``(..., 3)``
         to the shape's surface, negative inside."""
         points = jnp.asarray(points)
-        return self._local_distance((points - _lead(self.centre, points)) @ self.rotation)
+        local = (points - _lead(self.centre, points)) @ self.rotation
+        return self._local_distance(local[..., 0], local[..., 1], local[..., 2])
 
     @abc.abstractmethod
-    def _local_distance(self, local: Array) -> Array:
-        r"""$\phi$ of points given in the shape's local frame (centre at the origin)."""
+    def _local_distance(self, u: Array, v: Array, w: Array) -> Array:
+        r"""$\phi$ of points given by their coordinates along the shape's local axes
+        (centre at the origin; any broadcastable shapes)."""
 
 
 class SphereClip(Clip):
@@ -104,8 +111,8 @@ class SphereClip(Clip):
         self.centre, self.rotation = _pose(centre, rotation, where)
         self.radius = _positive(radius, "radius", where)
 
-    def _local_distance(self, local):
-        return safe_norm(local, axis=-1) - self.radius
+    def _local_distance(self, u, v, w):
+        return _hypot(u, v, w) - self.radius
 
 
 class BoxClip(Clip):
@@ -120,10 +127,10 @@ class BoxClip(Clip):
         self.half_size = _positive(jnp.broadcast_to(jnp.asarray(half_size, float), (3,)),
                                    "half_size", where)
 
-    def _local_distance(self, local):
-        q = jnp.abs(local) - _lead(self.half_size, local)
-        outside = safe_norm(jnp.maximum(q, 0), axis=-1)
-        return outside + jnp.minimum(jnp.max(q, axis=-1), 0)
+    def _local_distance(self, u, v, w):
+        q = [jnp.abs(x) - h for x, h in zip((u, v, w), self.half_size, strict=True)]
+        outside = _hypot(*(jnp.maximum(x, 0) for x in q))
+        return outside + jnp.minimum(jnp.maximum(jnp.maximum(q[0], q[1]), q[2]), 0)
 
 
 class TorusClip(Clip):
@@ -141,9 +148,8 @@ class TorusClip(Clip):
         self.major = _positive(major, "major", where)
         self.minor = _positive(minor, "minor", where)
 
-    def _local_distance(self, local):
-        ring = safe_norm(local[..., 1:], axis=-1) - self.major
-        return safe_norm(jnp.stack([local[..., 0], ring], axis=-1), axis=-1) - self.minor
+    def _local_distance(self, u, v, w):
+        return _hypot(u, _hypot(v, w) - self.major) - self.minor
 
 
 class HalfSpaceClip(Clip):
@@ -153,14 +159,26 @@ class HalfSpaceClip(Clip):
     def __init__(self, *, centre: ArrayLike, rotation: ArrayLike | None = None):
         self.centre, self.rotation = _pose(centre, rotation, "volshade.HalfSpaceClip")
 
-    def _local_distance(self, local):
-        return -local[..., 0]
+    def _local_distance(self, u, v, w):
+        return -jnp.broadcast_arrays(u, v, w)[0]
 
 
 def _voxel_distances(shape: tuple[int, int, int], clip: Clip) -> Array:
-    axes = [jnp.arange(n, dtype=clip.centre.dtype) for n in shape]
-    points = jnp.stack(jnp.meshgrid(*axes, indexing="ij"), axis=-1)
-    return clip.signed_distance(points)
+    r"""$\phi$ at every voxel centre. The local coordinates of the grid are sums of three
+    broadcast 1-D terms, $\sum_k (x_k - c_k) R_{kj}$, so no ``(D, H, W, 3)`` array of
+    points is built and multiplied."""
+    offsets = [(jnp.arange(n, dtype=clip.centre.dtype) - clip.centre[k]).reshape(
+        [n if a == k else 1 for a in range(3)]) for k, n in enumerate(shape)]
+    local = [sum(offsets[k] * clip.rotation[k, j] for k in range(3)) for j in range(3)]
+    return jnp.broadcast_to(clip._local_distance(*local), shape)
+
+
+def _removed(distances: Array) -> Array:
+    return distances <= 0
+
+
+def _within_reach(distances: Array, radius) -> Array:
+    return distances < jnp.asarray(radius, distances.dtype) + math.sqrt(3) + _REACH_MARGIN
 
 
 def _shape_of(shape, where: str) -> tuple[int, int, int]:
@@ -192,7 +210,7 @@ def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
         7
     """
     where = "volshade.clip_mask"
-    return _voxel_distances(_shape_of(shape, where), _clip(clip, where)) <= 0
+    return _removed(_voxel_distances(_shape_of(shape, where), _clip(clip, where)))
 
 
 def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
@@ -209,8 +227,7 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
         ``(D, H, W)`` boolean.
     """
     where = "volshade.affected_mask"
-    distances = _voxel_distances(_shape_of(shape, where), _clip(clip, where))
-    return distances < jnp.asarray(radius, distances.dtype) + math.sqrt(3) + _REACH_MARGIN
+    return _within_reach(_voxel_distances(_shape_of(shape, where), _clip(clip, where)), radius)
 
 
 def clip_opacity(alpha: Float[Array, "D H W"], clip: Clip) -> Float[Array, "D H W"]:
