@@ -47,10 +47,55 @@ def test_float32_weights_and_correction(correction):
     weights = jnp.asarray(RNG.uniform(0.2, 2.0, DIRS.shape[0]), jnp.float32)
     kw = dict(KW, weights=weights, opacity_correction=correction)
     clip = CLIPS["torus"]
-    got = vs.contextual_ao(alpha, clip=clip, unclipped=vs.lao(alpha, **kw), **kw)
+    assert affected_fraction(alpha.shape, clip, radius=3.5, brick_size=4) <= 0.5  # sparse
+    got = vs.contextual_ao(alpha, clip=clip, unclipped=vs.lao(alpha, **kw), brick_size=4, **kw)
     assert got.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(got), np.asarray(_full(alpha, clip, **kw)), rtol=0,
                                atol=1e-6)
+
+
+def test_the_reach_is_needed_and_enough_voxel_by_voxel():
+    # bricks of one voxel, many samples, random directions: the voxels whose AO the clip
+    # changes all lie in the affected mask, some of them farther than R from the clip (so
+    # a reach of R alone would miss them), and marching only the mask gives the full AO
+    alpha = ALPHA[:14, :14, :14]
+    clip = vs.HalfSpaceClip(centre=(9.0, 0.0, 0.0))
+    kw = dict(directions=vs.directions.random_polar(9, key=jax.random.key(4)), radius=3.5,
+              offset=0.5, samples=12)
+    unclipped = vs.lao(alpha, **kw)
+    full = _full(alpha, clip, **kw)
+    changed = np.asarray(jnp.abs(full - unclipped) > 0)
+    affected = np.asarray(vs.affected_mask(alpha.shape, clip, radius=3.5))
+    assert np.all(affected[changed])
+    distance = 9.0 - np.arange(14)[:, None, None] * np.ones((1, 14, 14))
+    assert np.any(changed & (distance >= 3.5))
+    got = vs.contextual_ao(alpha, clip=clip, unclipped=unclipped, brick_size=1, **kw)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=0, atol=1e-12)
+
+
+def test_unclipped_from_other_paddings_and_bricks():
+    # the unclipped AO may come from lao with bricks, another max_radius or a traced
+    # radius (another padding): the same values, so the same result
+    clip = CLIPS["sphere"]
+    full = _full(ALPHA, clip, **KW)
+    for unclipped in (vs.lao(ALPHA, **KW, brick_size=4), vs.lao(ALPHA, **KW, max_radius=9.0),
+                      jax.jit(lambda r: vs.lao(ALPHA, **dict(KW, radius=r)))(3.5)):
+        got = vs.contextual_ao(ALPHA, clip=clip, unclipped=unclipped, brick_size=4, **KW)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=0, atol=1e-12)
+
+
+def test_traced_clips_are_checked_where_used():
+    unclipped = vs.lao(ALPHA, **KW)
+
+    def run(rotation, centre):
+        clip = vs.BoxClip(centre=centre, half_size=2.0, rotation=rotation)
+        return vs.contextual_ao(ALPHA, clip=clip, unclipped=unclipped, **KW)
+
+    fine = eqx.filter_jit(run)(jnp.eye(3), jnp.asarray([5.0, 5.0, 5.0]))
+    assert np.all(np.isfinite(np.asarray(fine)))
+    for rotation, centre in ((2 * jnp.eye(3), [5.0, 5.0, 5.0]), (jnp.eye(3), [5.0, jnp.nan, 5.0])):
+        with pytest.raises(eqx.EquinoxRuntimeError, match="orthonormal"):
+            jax.block_until_ready(eqx.filter_jit(run)(rotation, jnp.asarray(centre)))
 
 
 def test_large_clip_marches_the_whole_volume_and_still_agrees():
@@ -168,5 +213,7 @@ def test_scene_clips_the_render_and_the_lao_ambient():
     assert np.all(np.asarray(render(gone, camera))[..., 3] == 0)
     with pytest.raises(ValueError, match="does not take `clip` into account"):
         vs.Scene(volume=vol, transfer=tf, ambient="obscurance", clip=clip)
+    with pytest.raises(ValueError, match="does not take `clip` into account"):
+        vs.Scene(volume=vol, transfer=tf, modulation="saliency", clip=clip)
     with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):
         vs.Scene(volume=vol, transfer=tf, clip="sphere")

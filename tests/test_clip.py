@@ -113,3 +113,14 @@ def test_bad_clips_raise_clear_errors():
         vs.clip_opacity(jnp.ones((4, 4, 4)), "sphere")
     with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf"):
         vs.clip_opacity(jnp.ones((4, 4, 4)).at[0, 0, 0].set(jnp.nan), SHAPES["sphere"])
+
+
+def test_half_precision_clips_are_measured_in_float32():
+    # bfloat16 cannot even count the voxels of a 300-voxel axis; the distances are
+    # computed in float32 at least, so the masks are those of the float32 clip
+    exact = vs.SphereClip(centre=jnp.asarray([3.0, 150.0, 4.0], jnp.float32), radius=2.5)
+    half = vs.SphereClip(centre=jnp.asarray([3.0, 150.0, 4.0], jnp.bfloat16),
+                         radius=jnp.asarray(2.5, jnp.bfloat16))
+    for fn in (lambda c: vs.clip_mask((8, 300, 8), c),
+               lambda c: vs.affected_mask((8, 300, 8), c, radius=2.0)):
+        np.testing.assert_array_equal(np.asarray(fn(half)), np.asarray(fn(exact)))

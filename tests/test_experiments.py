@@ -19,7 +19,8 @@ CASES = {
                                   ("corner_obscurance_rho.md", "| sqrt |")),
 }
 
-NEEDS_DATA = {"contextual_ao_head.py", "feature_ao_brain.py"}  # skipped, with the reason, without the real data
+# skipped, with the reason, without the real data
+NEEDS_DATA = {"contextual_ao_head.py", "feature_ao_brain.py"}
 
 
 @pytest.mark.slow

@@ -16,6 +16,12 @@ vmapped groups of padded windows); when more than half of the bricks are affecte
 the whole clipped volume is marched instead, which is then cheaper. The clip's pose
 is traced, so a moving clip never recompiles.
 
+Two parts of the paper are not needed here: its clipped voxels get AO = 1
+(category a) and its clipping test anti-aliases the opacity at the clip's surface
+(eq. 5); here the clipped voxels get the AO that a full recompute gives them (the
+renderer does not show them, but they are interpolated at the cut), and the clip
+removes whole voxels, as :func:`~volshade.clip.clip_opacity` does.
+
 Gradients: the marched bricks differentiate as :func:`~volshade.lao.lao` does
 (opacity, radius, offset, weights); the other voxels take the gradient of
 ``unclipped`` itself, which is their gradient under the clip too when ``unclipped``
@@ -31,9 +37,9 @@ import jax.numpy as jnp
 from jax import lax
 
 from . import _checks
-from ._types import Array, ArrayLike, Float, Volume
+from ._types import ArrayLike, Float, Volume
 from .clip import Clip, _clip, _removed, _voxel_distances, _within_reach, affected_mask
-from .lao import _MAX_ACTIVE_FRACTION, _bricked, _march, _prepare
+from .lao import _MAX_ACTIVE_FRACTION, _bricked, _bricks_holding, _march, _prepare
 
 _WHERE = "volshade.contextual_ao"
 
@@ -106,23 +112,14 @@ def contextual_ao(
                        max_active=_MAX_ACTIVE_FRACTION)
 
 
-def _brick_any(mask: Array, brick: int) -> Array:
-    """The bricks (a boolean grid) holding a True voxel of ``mask``."""
-    n_bricks = tuple(-(-s // brick) for s in mask.shape)
-    extra = tuple(nb * brick - s for nb, s in zip(n_bricks, mask.shape, strict=True))
-    blocks = jnp.pad(mask, tuple((0, e) for e in extra)).reshape(
-        n_bricks[0], brick, n_bricks[1], brick, n_bricks[2], brick)
-    return jnp.any(blocks, axis=(1, 3, 5))
-
-
 @eqx.filter_jit
 def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, samples,
                 correction, brick_size, max_active):
     """The validated computation, compiled once per shape and static options."""
-    distances = _voxel_distances(alpha.shape, clip)
-    clipped = jnp.where(_removed(distances), jnp.zeros_like(alpha), alpha)
     if samples == 1:
         return jnp.ones_like(alpha)  # eq. 2 with M = 1: an empty product, clip or not
+    distances = _voxel_distances(alpha.shape, clip)
+    clipped = jnp.where(_removed(distances), jnp.zeros_like(alpha), alpha)
 
     def march(source, shape):
         return _march(source, pad, shape, dirs, weights, radius, offset, samples, correction)
@@ -134,7 +131,7 @@ def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, s
         ao, skipped = _bricked(clipped, active, pad, brick_size, march)
         return jnp.where(skipped, unclipped, ao)
 
-    active = _brick_any(_within_reach(distances, radius), brick_size)
+    active = _bricks_holding(_within_reach(distances, radius, clip), brick_size)
     return lax.cond(jnp.mean(active) <= max_active, sparse, dense, clipped)
 
 
@@ -142,4 +139,6 @@ def affected_fraction(shape: tuple[int, int, int], clip: Clip, *, radius: float,
                       brick_size: int = 8) -> float:
     """The fraction of the bricks :func:`contextual_ao` marches for this clip (a
     concrete number, for benchmarks and for choosing ``brick_size``)."""
-    return float(jnp.mean(_brick_any(affected_mask(shape, clip, radius=radius), brick_size)))
+    brick_size = _checks.positive_int(brick_size, "brick_size", "volshade.cao.affected_fraction")
+    return float(jnp.mean(_bricks_holding(affected_mask(shape, clip, radius=radius),
+                                          brick_size)))

@@ -9,27 +9,34 @@ $\phi(x)$ (voxels, negative inside, 1-Lipschitz), from which both masks follow:
 
 * **clipped**: $\phi(x) \le 0$ at the voxel centre;
 * **affected** (the dilation shape, sections 3.3-3.4): the LAO of voxel $x$ reads
-  trilinear samples at distances up to $R$ from $x$, each from voxels less than
-  $\sqrt 3$ from the sample, so it can change only if a clipped voxel lies within
-  $R + \sqrt 3$ of $x$; as $\phi$ is 1-Lipschitz, every voxel with
-  $\phi(x) \ge R + \sqrt 3$ keeps its unclipped LAO.
+  trilinear samples at distances less than $R$ from $x$ (the last at
+  $R - \frac32 \Delta s$), each from voxels at most $\sqrt 3$ from the sample
+  (with weight 0 at exactly $\sqrt 3$), so it can change only if a clipped voxel
+  lies within $R + \sqrt 3$ of $x$; as $\phi$ is 1-Lipschitz, every voxel with
+  $\phi(x) \ge R + \sqrt 3$ (plus a margin for the rounding of $\phi$) keeps its
+  unclipped LAO.
 
 The paper computes the dilation as the Minkowski sum of the clipping mesh and a
 sphere of radius $R$, in 2D on depth maps rendered from a clipping camera (a
 rasterisation device, which limits it to meshes of at most two depth layers);
 with an exact signed distance it is a threshold, for any shape, convex or not.
 
-The pose and sizes are array leaves: moving a clip does not recompile. The masks
-are piecewise constant in them, so they get no gradient.
+The pose and sizes are array leaves: moving a clip does not recompile. They are
+checked when the shape is built from known values and, when traced, wherever the
+masks are computed (a rotation that is not orthonormal would break the 1-Lipschitz
+bound). The masks are piecewise constant in them, so they get no gradient.
+Distances are computed in float32 at least.
 
 References:
     Titov, Kersten-Oertel, Drouin, "Contextual ambient occlusion", sections 3.2-3.4.
 """
 
 import abc
+import functools
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -37,7 +44,9 @@ from . import _checks
 from ._numerics import safe_sqrt
 from ._types import Array, ArrayLike, Bool, Float
 
-_REACH_MARGIN = 1e-3  # voxels: rounding of phi must not make an affected voxel look safe
+# voxels: the rounding of phi must not make an affected voxel look safe; the relative
+# part covers float32 coordinates of large volumes and far centres
+_REACH_MARGIN, _REACH_RELATIVE_MARGIN = 1e-3, 64
 
 
 def _pose(centre, rotation, where: str) -> tuple[Array, Array]:
@@ -76,10 +85,11 @@ def _lead(vector: Array, like: Array) -> Array:
 class Clip(eqx.Module):
     """A clip shape: ``centre`` ``(3,)`` and ``rotation`` ``(3, 3)`` (columns: the
     local axes) in voxel index coordinates. Subclasses give the signed distance in
-    the shape's local frame."""
+    the shape's local frame and name their size leaves in ``sizes``."""
 
     centre: Float[Array, "3"]
     rotation: Float[Array, "3 3"]
+    sizes = ()  # the names of the size leaves (voxels, > 0)
 
     def signed_distance(self, points: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
         r"""Exact Euclidean signed distance $\phi$ (voxels) of ``points`` ``(..., 3)``
@@ -104,6 +114,7 @@ class SphereClip(Clip):
     """
 
     radius: Float[Array, ""]
+    sizes = ("radius",)
 
     def __init__(self, *, centre: ArrayLike, radius: ArrayLike,
                  rotation: ArrayLike | None = None):
@@ -119,6 +130,7 @@ class BoxClip(Clip):
     """A box of half-sizes ``half_size`` ``(3,)`` voxels along its local axes."""
 
     half_size: Float[Array, "3"]
+    sizes = ("half_size",)
 
     def __init__(self, *, centre: ArrayLike, half_size: ArrayLike,
                  rotation: ArrayLike | None = None):
@@ -136,10 +148,12 @@ class BoxClip(Clip):
 class TorusClip(Clip):
     """A torus around the local first axis: its tube (radius ``minor``) circles at
     ``major`` voxels from ``centre`` in the plane of the other two axes (the concave
-    clip of Titov et al., Figure 1)."""
+    clip of Titov et al., Figure 1). Its signed distance is 1-Lipschitz for any sizes
+    and exact when ``major >= minor``."""
 
     major: Float[Array, ""]
     minor: Float[Array, ""]
+    sizes = ("major", "minor")
 
     def __init__(self, *, centre: ArrayLike, major: ArrayLike, minor: ArrayLike,
                  rotation: ArrayLike | None = None):
@@ -163,10 +177,26 @@ class HalfSpaceClip(Clip):
         return -jnp.broadcast_arrays(u, v, w)[0]
 
 
+def _checked(clip: Clip) -> Clip:
+    """``clip`` with its traced leaves checked at run time (known ones were checked when
+    it was built): finite, sizes > 0, an orthonormal rotation."""
+    leaves = [clip.centre, clip.rotation, *(getattr(clip, name) for name in clip.sizes)]
+    finite = functools.reduce(jnp.logical_and, [jnp.all(jnp.isfinite(x)) for x in leaves])
+    positive = functools.reduce(jnp.logical_and, [jnp.all(getattr(clip, name) > 0)
+                                                  for name in clip.sizes], jnp.asarray(True))
+    deviation = jnp.max(jnp.abs(clip.rotation.T @ clip.rotation - jnp.eye(3)))
+    return eqx.error_if(
+        clip, ~(finite & positive & (deviation < 1e-5)),
+        f"volshade.{type(clip).__name__}: the clip's leaves must be finite, its sizes > 0 "
+        f"and `rotation` orthonormal (a rotation matrix).")
+
+
 def _voxel_distances(shape: tuple[int, int, int], clip: Clip) -> Array:
-    r"""$\phi$ at every voxel centre. The local coordinates of the grid are sums of three
-    broadcast 1-D terms, $\sum_k (x_k - c_k) R_{kj}$, so no ``(D, H, W, 3)`` array of
-    points is built and multiplied."""
+    r"""$\phi$ at every voxel centre, in float32 at least. The local coordinates of the
+    grid are sums of three broadcast 1-D terms, $\sum_k (x_k - c_k) R_{kj}$, so no
+    ``(D, H, W, 3)`` array of points is built and multiplied."""
+    clip = jax.tree_util.tree_map(lambda x: _checks.at_least_float32(x) if eqx.is_array(x)
+                                  else x, _checked(clip))
     offsets = [(jnp.arange(n, dtype=clip.centre.dtype) - clip.centre[k]).reshape(
         [n if a == k else 1 for a in range(3)]) for k, n in enumerate(shape)]
     local = [sum(offsets[k] * clip.rotation[k, j] for k in range(3)) for j in range(3)]
@@ -177,8 +207,10 @@ def _removed(distances: Array) -> Array:
     return distances <= 0
 
 
-def _within_reach(distances: Array, radius) -> Array:
-    return distances < jnp.asarray(radius, distances.dtype) + math.sqrt(3) + _REACH_MARGIN
+def _within_reach(distances: Array, radius, clip: Clip) -> Array:
+    scale = max(distances.shape) + jnp.max(jnp.abs(clip.centre))
+    margin = _REACH_MARGIN + _REACH_RELATIVE_MARGIN * jnp.finfo(distances.dtype).eps * scale
+    return distances < jnp.asarray(radius, distances.dtype) + math.sqrt(3) + margin
 
 
 def _shape_of(shape, where: str) -> tuple[int, int, int]:
@@ -216,7 +248,8 @@ def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
 def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
                   radius: Float[ArrayLike, ""]) -> Bool[Array, "D H W"]:
     r"""The voxels whose LAO of radius ``radius`` can differ with and without ``clip``:
-    $\phi < R + \sqrt 3$ (see the module docstring); the clipped voxels are among them.
+    $\phi < R + \sqrt 3$ plus a rounding margin (at least $10^{-3}$ voxels; see the
+    module docstring); the clipped voxels are among them.
 
     Args:
         shape: the volume's ``(D, H, W)``.
@@ -227,7 +260,8 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
         ``(D, H, W)`` boolean.
     """
     where = "volshade.affected_mask"
-    return _within_reach(_voxel_distances(_shape_of(shape, where), _clip(clip, where)), radius)
+    clip = _clip(clip, where)
+    return _within_reach(_voxel_distances(_shape_of(shape, where), clip), radius, clip)
 
 
 def clip_opacity(alpha: Float[Array, "D H W"], clip: Clip) -> Float[Array, "D H W"]:

@@ -407,14 +407,18 @@ _IMPLEMENTATIONS = {"xla": "fused shifted reads (XLA)",
                     "pallas": "Pallas kernels (Triton on an NVIDIA GPU)"}
 
 
+def _bricks_holding(mask, brick) -> Array:
+    """The bricks (a boolean grid) holding a True voxel of ``mask``."""
+    n_bricks = tuple(-(-s // brick) for s in mask.shape)
+    extra = tuple(nb * brick - s for nb, s in zip(n_bricks, mask.shape, strict=True))
+    blocks = jnp.pad(mask, tuple((0, e) for e in extra)).reshape(
+        n_bricks[0], brick, n_bricks[1], brick, n_bricks[2], brick)
+    return jnp.any(blocks, axis=(1, 3, 5))
+
+
 def _active_bricks(alpha, pad, brick) -> Array:
     """Bricks (a boolean grid) with opacity within ``pad`` voxels of them."""
-    shape = alpha.shape
-    n_bricks = tuple(-(-s // brick) for s in shape)
-    extra = tuple(nb * brick - s for nb, s in zip(n_bricks, shape, strict=True))
-    blocks = jnp.pad(alpha, tuple((0, e) for e in extra)).reshape(
-        n_bricks[0], brick, n_bricks[1], brick, n_bricks[2], brick)
-    occupied = jnp.any(blocks > 0, axis=(1, 3, 5))
+    occupied = _bricks_holding(alpha > 0, brick)
     reach = tuple(-(-p // brick) for p in pad)
     return lax.reduce_window(
         occupied, False, lax.bitwise_or, tuple(2 * r + 1 for r in reach), (1, 1, 1),

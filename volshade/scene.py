@@ -146,8 +146,11 @@ class Scene(eqx.Module):
             trilinearly) and from the opacity ``ambient="lao"`` sees. With a moving
             clip, compute the ambient volume with
             :func:`~volshade.cao.contextual_ao` and pass it as
-            ``ambient="volume"``. ``ambient="feature_ao"`` and ``"obscurance"`` do
-            not take the clip into account and are refused with it.
+            ``ambient="volume"``. ``ambient="feature_ao"`` and ``"obscurance"``
+            and ``modulation="saliency"`` do not take the clip into account and are
+            refused with it. Gradients (Phong normals, importance) are those of the
+            unclipped volume, so a cut face is shaded with the normals of the tissue
+            it cuts through.
 
     Example:
         >>> vol = jnp.zeros((8, 8, 8))
@@ -205,6 +208,10 @@ class Scene(eqx.Module):
                 raise ValueError(f"{_WHERE}: ambient={self.ambient!r} does not take `clip` "
                                  f"into account; compute the ambient volume of the clipped "
                                  f"volume yourself and pass ambient='volume'.")
+            if self.modulation != "none":
+                raise ValueError(f"{_WHERE}: modulation={self.modulation!r} does not take "
+                                 f"`clip` into account (the saliency would be that of the "
+                                 f"unclipped volume); use modulation='none' with a clip.")
         if jnp.shape(self.background) != (3,):
             raise ValueError(f"{_WHERE}: `background` must be an RGB triple, "
                              f"got shape {jnp.shape(self.background)}.")
