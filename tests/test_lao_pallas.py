@@ -141,7 +141,8 @@ def launch_reference():
     return (alpha, radius, ct), jax.value_and_grad(xla, argnums=(0, 1))(alpha, radius)
 
 
-@pytest.mark.parametrize("launch", (*pallas.LAUNCHES,
+# num_warps is a Triton setting: the interpreter runs Launch(num_warps=8) as the default
+@pytest.mark.parametrize("launch", (*(x for x in pallas.LAUNCHES if x.num_warps == 4),
                                     pallas.Launch(tile=(1, 8, 32), cotangent_tile=(4, 8, 32)),
                                     pallas.Launch(tile=(4, 4, 4), cotangent_tile=(1, 1, 1),
                                                   vector=8)))
@@ -182,13 +183,14 @@ def test_vmap_over_volumes_and_radii():
         return lambda a, r: lao(a, directions=6, radius=r, samples=5, max_radius=5.0,
                                 implementation=implementation)
 
-    got = jax.vmap(f("pallas"))(alphas, radii)
-    np.testing.assert_allclose(got, jax.vmap(f("xla"))(alphas, radii), rtol=0, atol=1e-13)
+    got = jax.jit(jax.vmap(f("pallas")))(alphas, radii)
+    np.testing.assert_allclose(got, jax.jit(jax.vmap(f("xla")))(alphas, radii), rtol=0,
+                               atol=1e-13)
     assert not np.allclose(got[0], got[1])
 
     def loss(implementation):
-        return jax.vmap(jax.grad(lambda a, r: jnp.sum(f(implementation)(a, r) ** 2),
-                                 argnums=(0, 1)))
+        return jax.jit(jax.vmap(jax.grad(lambda a, r: jnp.sum(f(implementation)(a, r) ** 2),
+                                         argnums=(0, 1))))
 
     for g, w in zip(loss("pallas")(alphas, radii), loss("xla")(alphas, radii), strict=True):
         np.testing.assert_allclose(g, w, rtol=1e-11, atol=1e-12)

@@ -229,7 +229,7 @@ def test_vmap_equals_stacked():
     vols = jnp.asarray(random_volume((3, 8, 8, 8), 10))
     dms = jnp.array([2.0, 4.0, 9.0])
     f = lambda v, dm: obscurance(v, directions=DIRS12, d_max=dm, rho="exponential")
-    batched = jax.vmap(f)(vols, dms)
+    batched = jax.jit(jax.vmap(f))(vols, dms)
     for i in range(3):
         np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(f(vols[i], dms[i])),
                                    rtol=0, atol=1e-15)

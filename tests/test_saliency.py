@@ -209,7 +209,8 @@ def test_viewpoint_saliency_grad_vmap_dtype():
     check_grad_fd(f, alpha)
     g = jax.grad(f)(jnp.ones((5, 5, 5)))  # fully opaque: finite
     assert bool(jnp.all(jnp.isfinite(g)))
-    batched = jax.vmap(lambda a: viewpoint_saliency(sal, a, VIEWS))(jnp.stack([alpha, 1 - alpha]))
+    batched = jax.jit(jax.vmap(lambda a: viewpoint_saliency(sal, a, VIEWS)))(
+        jnp.stack([alpha, 1 - alpha]))
     np.testing.assert_allclose(np.asarray(batched[1]),
                                np.asarray(viewpoint_saliency(sal, 1 - alpha, VIEWS)), rtol=1e-14)
     out32 = viewpoint_saliency(sal.astype(jnp.float32), alpha.astype(jnp.float32), VIEWS)

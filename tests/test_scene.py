@@ -64,8 +64,8 @@ def test_scene_is_a_pytree_for_jit_vmap_grad():
     f = eqx.filter_jit(render)
     np.testing.assert_allclose(f(s, cam), render(s, cam), atol=1e-12)
     scenes = jax.vmap(lambda k: eqx.tree_at(lambda t: t.phong.diffuse, s, k))(jnp.array([0.2, 0.9]))
-    imgs = eqx.filter_vmap(lambda sc: render(sc, cam))(scenes)
-    np.testing.assert_allclose(imgs[1], render(eqx.tree_at(lambda t: t.phong.diffuse, s, 0.9), cam),
+    imgs = eqx.filter_jit(eqx.filter_vmap(lambda sc: render(sc, cam)))(scenes)
+    np.testing.assert_allclose(imgs[1], f(eqx.tree_at(lambda t: t.phong.diffuse, s, 0.9), cam),
                                atol=1e-12)
     grads = eqx.filter_jit(eqx.filter_grad(lambda sc: jnp.sum(render(sc, cam))))(s)
     assert float(jnp.abs(grads.phong.diffuse)) > 0

@@ -95,7 +95,7 @@ def test_jit_equals_eager_and_vmap_equals_loop(name):
                                atol=1e-12)
     # different outputs, or a vmap that mixes up the batch elements would pass
     assert not np.allclose(np.asarray(fn(x1)), np.asarray(fn(x2)), rtol=1e-6, atol=1e-6), name
-    batched = jax.vmap(fn)(jnp.stack([x1, x2]))
+    batched = jax.jit(jax.vmap(fn))(jnp.stack([x1, x2]))
     for k, x in enumerate((x1, x2)):
         np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(fn(x)), rtol=1e-12,
                                    atol=1e-12)
