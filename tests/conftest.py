@@ -1,5 +1,7 @@
 import os
 import pathlib
+import shutil
+import tempfile
 
 # pytest-xdist runs one JAX process per worker; on a GPU each would otherwise take 75% of
 # the device's memory on its first operation and the second worker would run out
@@ -12,6 +14,25 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 _SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
+_CACHE = "VOLSHADE_TEST_COMPILATION_CACHE"
+
+
+def pytest_configure(config):
+    # One compilation cache for the test session, in a fresh folder that the pytest-xdist
+    # workers inherit through the environment: many tests build the same XLA program
+    # under a different Python function (a new lambda, a new Module), which the in-memory
+    # caches of jit cannot see. Nothing outlives the session, so every run starts cold.
+    if _CACHE not in os.environ:
+        os.environ[_CACHE] = tempfile.mkdtemp(prefix="volshade-test-xla-")
+        config.volshade_owns_cache = True
+    jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_unconfigure(config):
+    if getattr(config, "volshade_owns_cache", False):
+        shutil.rmtree(os.environ.pop(_CACHE), ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -4,6 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import volshade as vs
+
 
 def tol(dtype) -> float:
     """About 100 x eps of ``dtype``."""
@@ -29,3 +31,14 @@ def check_grad_fd(f, x, *, key=0, h=1e-6, rtol=1e-4, n_dirs=3):
         fd = float(central_difference(f, x, v, h))
         assert abs(ad - fd) <= rtol * max(abs(fd), abs(ad), 1e-8), (ad, fd)
     return g
+
+
+def one_medium_written_twice():
+    """One uniform medium as two transfer functions: opacity 0.3 per 1 mm, and the same
+    per 0.5 mm (``1 - 0.7 ** 0.5``). With the opacity correction, an effect must see
+    no difference between them."""
+    rows = [(0.0, 1, 1, 1, 0.3), (1.0, 1, 1, 1, 0.3)]
+    per_mm = vs.TransferFunction.from_points(rows, step0=1.0)
+    per_half_mm = vs.TransferFunction.from_points(
+        [(x, r, g, b, 1 - (1 - a) ** 0.5) for x, r, g, b, a in rows], step0=0.5)
+    return per_mm, per_half_mm

@@ -6,8 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import check_grad_fd
+from helpers import check_grad_fd, one_medium_written_twice
 from reference_feature_ao import feature_ao_reference, merge_reference
+from reference_lao import lao_reference
 
 import volshade as vs
 from volshade.feature_ao import MERGES, feature_labels
@@ -55,19 +56,28 @@ def _regions(opacities):
 # ----------------------------------------------------------------- reference agreement
 
 
-@pytest.mark.parametrize("merge", sorted(MERGES))
-def test_matches_voxel_by_voxel_reference(merge):
+@pytest.fixture(scope="module")
+def blocks_reference():
+    """The blocks volume, three features (the last two overlapping), their opacities and
+    each feature's reference AO, computed once for every merge's test."""
     vol = _blocks()
-    features = [*SHELLS[:2], _ramp_tf([0.0, 0.0, 0.0, 0.2, 0.6])]  # overlapping last two
+    features = [*SHELLS[:2], _ramp_tf([0.0, 0.0, 0.0, 0.2, 0.6])]
     opacities = np.asarray(vs.transfer.feature_opacities(vol, features, base=SHELLS_TF))
+    per_feature = np.stack([np.asarray(lao_reference(a, DIRS, 4.5, 0.5, 6)) for a in opacities])
+    return vol, features, opacities, per_feature
+
+
+@pytest.mark.parametrize("merge", sorted(MERGES))
+def test_matches_voxel_by_voxel_reference(merge, blocks_reference):
+    vol, features, opacities, per_feature = blocks_reference
     if merge == "neighbourhood":
         # every branch of the merge is exercised by this volume
         assert all(region.mean() > 0.05 for region in _regions(opacities))
     got = vs.feature_ao(vol, features=features, base=SHELLS_TF, directions=DIRS, radius=4.5,
                         offset=0.5, samples=6, merge=merge)
-    ref = feature_ao_reference(opacities, DIRS, 4.5, 0.5, 6, merge)
     assert got.shape == vol.shape and got.dtype == jnp.float64
-    np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(got), merge_reference(per_feature, opacities, merge),
+                               rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("merge", ["max", "neighbourhood"])
@@ -376,10 +386,7 @@ def test_scene_corrects_feature_opacities_to_the_voxel_step():
     # a one-voxel step (2 mm voxels here), however the transfer function is written
     from volshade.scene import _feature_ao_ambient
 
-    rows = [(0.0, 1, 1, 1, 0.3), (1.0, 1, 1, 1, 0.3)]
-    per_mm = vs.TransferFunction.from_points(rows, step0=1.0)
-    per_half_mm = vs.TransferFunction.from_points(
-        [(x, r, g, b, 1 - (1 - a) ** 0.5) for x, r, g, b, a in rows], step0=0.5)
+    per_mm, per_half_mm = one_medium_written_twice()
     vol = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (10, 10, 10)))
     params = vs.FeatureAmbientOcclusion(
         [vs.IntervalFeature(0.0, 0.5), vs.IntervalFeature(0.5, 1.0)],

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import reference_composition as ref
+from helpers import one_medium_written_twice
 
 import volshade as vs
 import volshade.scene as scene_module
@@ -304,10 +305,7 @@ def test_corrected_lao_sees_the_medium_not_how_the_transfer_function_is_written(
     # the opacity of a one-voxel step, so its ambient term is the same for both
     from volshade.scene import _lao_ambient
 
-    rows = [(0.0, 1, 1, 1, 0.3), (1.0, 1, 1, 1, 0.3)]
-    per_mm = vs.TransferFunction.from_points(rows, step0=1.0)
-    per_half_mm = vs.TransferFunction.from_points(
-        [(x, r, g, b, 1 - (1 - a) ** 0.5) for x, r, g, b, a in rows], step0=0.5)
+    per_mm, per_half_mm = one_medium_written_twice()
     vol = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (10, 10, 10)))
     params = vs.LocalAmbientOcclusion(3.0, offset=0.5, directions=6, samples=4,
                                       opacity_correction=True)

@@ -39,7 +39,7 @@ from jax import lax
 from . import _checks
 from ._types import ArrayLike, Float, Volume
 from .clip import Clip, _clip, _removed, _voxel_distances, _within_reach, affected_mask
-from .lao import _MAX_ACTIVE_FRACTION, _bricked, _bricks_holding, _march, _prepare
+from .lao import _MAX_ACTIVE_FRACTION, _bricked, _bricks_holding, _marchers, _prepare
 
 _WHERE = "volshade.contextual_ao"
 
@@ -121,11 +121,7 @@ def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, s
     distances = _voxel_distances(alpha.shape, clip)
     clipped = jnp.where(_removed(distances), jnp.zeros_like(alpha), alpha)
 
-    def march(source, shape):
-        return _march(source, pad, shape, dirs, weights, radius, offset, samples, correction)
-
-    def dense(clipped):
-        return march(jnp.pad(clipped, tuple((p, p) for p in pad)), clipped.shape)
+    march, dense = _marchers(pad, dirs, weights, radius, offset, samples, correction)
 
     def sparse(clipped):
         ao, skipped = _bricked(clipped, active, pad, brick_size, march)

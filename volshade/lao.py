@@ -389,6 +389,19 @@ def _march(source, pad, shape, directions, weights, radius, offset, samples,
     return 1 - total / samples
 
 
+def _marchers(pad, directions, weights, radius, offset, samples, correction):
+    """``march(source, shape)``, the AO of a padded window, and ``dense(alpha)``, the AO
+    of a whole volume, for these parameters."""
+    def march(source, shape):
+        return _march(source, pad, shape, directions, weights, radius, offset, samples,
+                      correction)
+
+    def dense(alpha):
+        return march(jnp.pad(alpha, tuple((p, p) for p in pad)), alpha.shape)
+
+    return march, dense
+
+
 # --------------------------------------------------------------------------- bricks
 
 
@@ -778,12 +791,7 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
                                           brick=brick_size)
         return 1 - total / samples
 
-    def march(source, shape):
-        return _march(source, pad, shape, dirs, weights, radius, offset, samples, correction)
-
-    def dense(alpha):
-        return march(jnp.pad(alpha, tuple((p, p) for p in pad)), alpha.shape)
-
+    march, dense = _marchers(pad, dirs, weights, radius, offset, samples, correction)
     if brick_size is None:
         return dense(alpha)
 
