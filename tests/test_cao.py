@@ -6,7 +6,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import check_grad_fd
 
 import volshade as vs
 from volshade.cao import affected_fraction
@@ -41,11 +40,10 @@ def test_equals_a_full_recompute(name):
     np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("correction", [False, True])
-def test_float32_weights_and_correction(correction):
+def test_float32_weights_and_correction():
     alpha = ALPHA.astype(jnp.float32)
     weights = jnp.asarray(RNG.uniform(0.2, 2.0, DIRS.shape[0]), jnp.float32)
-    kw = dict(KW, weights=weights, opacity_correction=correction)
+    kw = dict(KW, weights=weights, opacity_correction=True)
     clip = CLIPS["torus"]
     assert affected_fraction(alpha.shape, clip, radius=3.5, brick_size=4) <= 0.5  # sparse
     got = vs.contextual_ao(alpha, clip=clip, unclipped=vs.lao(alpha, **kw), brick_size=4, **kw)
@@ -176,7 +174,10 @@ def test_gradients_equal_the_full_recompute_and_finite_differences():
     ref = jax.jit(jax.grad(full, argnums=(0, 1)))(alpha, r)
     np.testing.assert_allclose(np.asarray(got[0]), np.asarray(ref[0]), rtol=0, atol=1e-10)
     np.testing.assert_allclose(float(got[1]), float(ref[1]), rtol=1e-10)
-    check_grad_fd(jax.jit(lambda x: contextual(alpha, x[0])), jnp.asarray([3.5]), n_dirs=1)
+    assert float(jnp.max(jnp.abs(got[0]))) > 0
+    value, h = jax.jit(contextual), 1e-6
+    fd = (value(alpha, r + h) - value(alpha, r - h)) / (2 * h)
+    np.testing.assert_allclose(float(got[1]), float(fd), rtol=1e-4)
 
 
 def test_bad_inputs_raise_clear_errors():
