@@ -44,12 +44,13 @@ def run(quick: bool) -> dict:
         clip_radius = float(shape.min()) / 6
         unclipped = jax.block_until_ready(jax.jit(lambda a: vs.lao(a, **kw))(alpha))
 
-        def contextual(centre, alpha=alpha, unclipped=unclipped, r=clip_radius):
+        # the volumes are arguments, not constants XLA would fold while compiling
+        def contextual(centre, alpha, unclipped, r=clip_radius):
             clip = vs.SphereClip(centre=centre, radius=r)
             return vs.contextual_ao(alpha, clip=clip, unclipped=unclipped, brick_size=brick,
                                     **kw)
 
-        def full(centre, alpha=alpha, r=clip_radius):
+        def full(centre, alpha, unclipped, r=clip_radius):
             return vs.lao(vs.clip_opacity(alpha, vs.SphereClip(centre=centre, radius=r)), **kw)
 
         fast, slow = jax.jit(contextual), jax.jit(full)
@@ -58,11 +59,12 @@ def run(quick: bool) -> dict:
         t_fast, t_slow, diffs, fractions = [], [], [], []
         for centre in path:
             centre = jnp.asarray(centre)
-            a = time_fn(fast, centre, repeats=repeats)
-            b = time_fn(slow, centre, repeats=repeats)
+            args = (centre, alpha, unclipped)
+            a = time_fn(fast, *args, repeats=repeats)
+            b = time_fn(slow, *args, repeats=repeats)
             t_fast.append(a["median_s"])
             t_slow.append(b["median_s"])
-            diffs.append(float(jnp.max(jnp.abs(fast(centre) - slow(centre)))))
+            diffs.append(float(jnp.max(jnp.abs(fast(*args) - slow(*args)))))
             fractions.append(affected_fraction(alpha.shape, vs.SphereClip(
                 centre=centre, radius=clip_radius), radius=radius, brick_size=brick))
         for centre, tf_, ts, d, f in zip(path, t_fast, t_slow, diffs, fractions, strict=True):

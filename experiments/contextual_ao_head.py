@@ -85,9 +85,18 @@ def clip_at(centre):
     return vs.SphereClip(centre=centre, radius=clip_radius)
 
 
-contextual = jax.jit(lambda c: vs.contextual_ao(alpha, clip=clip_at(c), unclipped=unclipped,
-                                                brick_size=8, **lao_kw))
-full = jax.jit(lambda c: vs.lao(vs.clip_opacity(alpha, clip_at(c)), **lao_kw))
+# the volumes are arguments of the compiled functions, not constants to fold
+contextual_jit = jax.jit(lambda c, a, u: vs.contextual_ao(a, clip=clip_at(c), unclipped=u,
+                                                          brick_size=8, **lao_kw))
+full_jit = jax.jit(lambda c, a: vs.lao(vs.clip_opacity(a, clip_at(c)), **lao_kw))
+
+
+def contextual(centre):
+    return contextual_jit(centre, alpha, unclipped)
+
+
+def full(centre):
+    return full_jit(centre, alpha)
 
 # %% [markdown]
 # ## Per frame: agreement and time
