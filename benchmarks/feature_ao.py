@@ -16,14 +16,20 @@ For each, with the paper's parameters (16 pseudo-random polar rays, R = 16 voxel
   transfer function) of feature AO and of classic AO.
 """
 
+import math
+
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 import volshade as vs
 from benchmarks._timing import time_fn
 from volshade.feature_ao import MERGES
 from volshade.lao import _active_bricks
+
+
+def _pad(radius: float) -> tuple[int, int, int]:
+    """The zero padding ``lao`` gives a march of this radius (its brick halo)."""
+    return (math.ceil(radius) + 1,) * 3
 
 
 def _datasets(n: int) -> dict:
@@ -47,7 +53,7 @@ def _measure(name, vol, tf, features, *, n, directions, radius, samples, brick, 
              ratios):
     """The rows and ratios of one dataset (a function, so closures bind its values)."""
     lao_kw = dict(directions=directions, radius=radius, samples=samples)
-    pad = (int(np.ceil(radius)) + 1,) * 3
+    pad = _pad(radius)
     alpha = tf.opacity(vol)
     feature_alphas = vs.transfer.feature_opacities(vol, features, base=tf)
     occupied = [float(jnp.mean(a > 0)) for a in feature_alphas]
@@ -90,7 +96,8 @@ def _measure(name, vol, tf, features, *, n, directions, radius, samples, brick, 
     # the paper's R = 16 reaches nearly every brick of these phantoms; a short reach
     # leaves the empty ones out
     short = dict(lao_kw, radius=4.0)
-    active = [float(jnp.mean(_active_bricks(a, (5, 5, 5), brick))) for a in feature_alphas]
+    active = [float(jnp.mean(_active_bricks(a, _pad(short["radius"]), brick)))
+              for a in feature_alphas]
     t_short = row(f"{tag}: feature_ao (max), R = 4",
                   lambda v: vs.feature_ao(v, features=features, base=tf, **short), vol)
     t_short_bricked = row(

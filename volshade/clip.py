@@ -49,6 +49,11 @@ from ._types import Array, ArrayLike, Bool, Float
 _REACH_MARGIN, _REACH_RELATIVE_MARGIN = 1e-3, 64
 
 
+def _orthonormal(rotation: Array) -> Array:
+    """Whether ``rotation`` is a rotation (or reflection) matrix, to rounding."""
+    return jnp.max(jnp.abs(rotation.T @ rotation - jnp.eye(3))) < 1e-5
+
+
 def _pose(centre, rotation, where: str) -> tuple[Array, Array]:
     centre = _checks.float_leaf(centre)
     rotation = _checks.float_leaf(np.eye(3) if rotation is None else rotation)
@@ -58,8 +63,7 @@ def _pose(centre, rotation, where: str) -> tuple[Array, Array]:
     if rotation.shape != (3, 3):
         raise ValueError(f"{where}: `rotation` must be a 3x3 rotation matrix, got shape "
                          f"{rotation.shape}.")
-    deviation = jnp.max(jnp.abs(rotation.T @ rotation - jnp.eye(3)))
-    _checks.refuse(rotation, [(~(deviation < 1e-5), "`rotation` must be orthonormal (a "
+    _checks.refuse(rotation, [(~_orthonormal(rotation), "`rotation` must be orthonormal (a "
                                "rotation matrix): the signed distance is exact only then.")],
                    where, traced=False)
     return centre, rotation
@@ -184,9 +188,8 @@ def _checked(clip: Clip) -> Clip:
     finite = functools.reduce(jnp.logical_and, [jnp.all(jnp.isfinite(x)) for x in leaves])
     positive = functools.reduce(jnp.logical_and, [jnp.all(getattr(clip, name) > 0)
                                                   for name in clip.sizes], jnp.asarray(True))
-    deviation = jnp.max(jnp.abs(clip.rotation.T @ clip.rotation - jnp.eye(3)))
     return eqx.error_if(
-        clip, ~(finite & positive & (deviation < 1e-5)),
+        clip, ~(finite & positive & _orthonormal(clip.rotation)),
         f"volshade.{type(clip).__name__}: the clip's leaves must be finite, its sizes > 0 "
         f"and `rotation` orthonormal (a rotation matrix).")
 

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from . import _checks
 from ._types import Array, Float
 from .camera import Camera
-from .clip import Clip, clip_mask
+from .clip import Clip, clip_mask, clip_opacity
 from .composition import COMPOSITORS
 from .feature_ao import FeatureAmbientOcclusion
 from .importance import Focus, Importance
@@ -61,8 +61,7 @@ def _kept(scene: "Scene") -> Array | None:
 
 def _lao_ambient(scene: "Scene") -> Array:
     alpha = scene.transfer.opacity(scene.volume, step=_voxel_step(scene, scene.lao))
-    kept = _kept(scene)
-    return scene.lao(alpha if kept is None else alpha * kept.astype(alpha.dtype))
+    return scene.lao(alpha if scene.clip is None else clip_opacity(alpha, scene.clip))
 
 
 def _feature_ao_ambient(scene: "Scene") -> Array:
