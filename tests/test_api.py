@@ -19,7 +19,8 @@ def test_options_are_keyword_only():
     data_args = {"render": 2, "composite": 2, "save_png": 2, "viewpoint_saliency": 3,
                  "most_salient_view": 3, "least_salient_view": 3, "projected_area": 2,
                  "modulate_opacity": 2, "threshold": 3, "obscurance_shading": 4,
-                 "merge_feature_ao": 2, "clip_mask": 2, "affected_mask": 2, "clip_opacity": 2}
+                 "merge_feature_ao": 2, "clip_mask": 2, "affected_mask": 2, "clip_opacity": 2,
+                 "fit": 3}
     for name, fn in _public_callables():
         params = list(inspect.signature(fn).parameters.values())
         positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]

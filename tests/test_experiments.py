@@ -13,6 +13,7 @@ CASES = {
                               ("contextual_ao_head.md", "| clip centre (voxels) |")),
     "feature_ao_brain.py": (["feature_ao_brain.png", "feature_ao_brain_radius.png"],
                             ("feature_ao_brain.md", "| white matter |")),
+    "fit_head.py": (["fit_head.png"], ("fit_head.md", "| noisy images (sigma 0.02) |")),
     "lao_accuracy_cost.py": (["lao_accuracy_cost.png"],
                              ("lao_accuracy_cost.md", "| icosphere 42 |")),
     "corner_colour_bleeding.py": (["corner_obscurance_rho.png", "corner_obscurance_render.png"],
@@ -20,7 +21,7 @@ CASES = {
 }
 
 # skipped, with the reason, without the real data
-NEEDS_DATA = {"contextual_ao_head.py", "feature_ao_brain.py"}
+NEEDS_DATA = {"contextual_ao_head.py", "feature_ao_brain.py", "fit_head.py"}
 
 
 @pytest.mark.slow

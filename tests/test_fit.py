@@ -1,53 +1,156 @@
 """Fitting with optimistix: parameters recovered from targets made with known values.
 
-LAO's gradient is a custom VJP (reverse mode only), so least-squares solvers get
-``options=dict(jac="bwd")``: Jacobian products by reverse mode.
+LAO's gradient is a custom VJP (reverse mode only): ``vs.fit`` gives least-squares
+solvers Jacobian products by reverse mode (``options=dict(jac="bwd")``) and minimisers
+a JVP rule computed by reverse mode.
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
 
 import volshade as vs
-
-pytestmark = pytest.mark.slow
+from volshade.fit import _from_bounded, _reverse_mode, _to_bounded
 
 _BWD = {"jac": "bwd"}  # LAO has no forward-mode derivative
 
 
-def test_levenberg_marquardt_recovers_the_lao_radius():
-    rng = np.random.default_rng(0)
-    alpha = jnp.zeros((12, 12, 12)).at[4:8, 3:9, 5:8].set(
-        jnp.asarray(rng.uniform(0.2, 0.9, (4, 6, 3))))
-    kw = dict(directions=vs.directions.fibonacci(6), samples=6, offset=0.5, max_radius=5.0)
-    target = vs.lao(alpha, radius=3.3, **kw)
-
-    def residuals(radius, args):
-        return vs.lao(alpha, radius=radius, **kw) - target
-
-    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
-    sol = optx.least_squares(residuals, solver, jnp.asarray(2.5), max_steps=60, options=_BWD)
-    np.testing.assert_allclose(float(sol.value), 3.3, atol=1e-6)
+def _lao_scene():
+    vol = vs.data.phantom("shells", shape=10).astype(jnp.float64)
+    return vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading="phong",
+                    ambient="lao", composition="importance",
+                    importance=vs.Importance(intensity=2.0),
+                    lao=vs.LocalAmbientOcclusion(3.0, offset=0.5, directions=4, samples=4,
+                                                 max_radius=5.0))
 
 
-def test_levenberg_marquardt_recovers_a_scene_parameter_from_an_image():
-    # the LAO radius of a rendered scene, from the image alone
+@pytest.mark.slow
+def test_fit_recovers_the_lao_radius_and_an_importance_weight_from_an_image():
+    truth = _lao_scene()
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))
+    target = vs.render(truth, cam)
+    start = eqx.tree_at(lambda s: (s.lao.radius, s.importance.intensity), truth,
+                        (jnp.asarray(2.2), jnp.asarray(1.2)))
+    result = vs.fit(start, cam, target,
+                    params={"lao.radius": (0.5, 5.0), "importance.intensity": (0.0, None)})
+    assert result.result == optx.RESULTS.successful
+    np.testing.assert_allclose(float(result.values["lao.radius"]), 3.0, atol=1e-6)
+    np.testing.assert_allclose(float(result.values["importance.intensity"]), 2.0, atol=1e-5)
+    assert float(result.loss) < 1e-16 < float(result.initial_loss)
+    assert int(result.steps) > 0
+    # the fitted scene is the initial one with the fitted values in place
+    assert eqx.tree_equal(result.scene, eqx.tree_at(
+        lambda s: (s.lao.radius, s.importance.intensity), start,
+        (result.values["lao.radius"], result.values["importance.intensity"])))
+
+
+@pytest.mark.slow
+def test_fit_to_several_views_with_rgb_targets_weights_and_an_array_parameter():
+    # the background colour (an array leaf, each element in its bounds) and the Phong
+    # ambient coefficient from two views; the weights leave out pixels the target spoils
     vol = vs.data.phantom("shells", shape=12).astype(jnp.float64)
-    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(10, 10))
-    scene = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading="phong",
-                     ambient="lao", lao=vs.LocalAmbientOcclusion(
-                         2.0, offset=0.5, directions=6, samples=6, max_radius=5.0))
+    truth = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading="phong",
+                     background=(0.2, 0.5, 0.7), phong=vs.Phong(ambient=0.5))
+    cams = [vs.Camera.orbit(azimuth=a, elevation=20, image_shape=(8, 8)) for a in (0, 90)]
+    targets = [vs.render(truth, c)[..., :3] for c in cams]
+    weights = [jnp.ones((8, 8)).at[0, 0].set(0.0), jnp.ones((8, 8, 3))]
+    targets[0] = targets[0].at[0, 0].set(1.0)
+    start = eqx.tree_at(lambda s: (s.background, s.phong.ambient), truth,
+                        (jnp.full(3, 0.5), jnp.asarray(0.3)))
+    result = vs.fit(start, cams, targets, weights=weights,
+                    params={"background": (0.0, 1.0), "phong.ambient": None})
+    np.testing.assert_allclose(np.asarray(result.values["background"]), [0.2, 0.5, 0.7],
+                               atol=1e-6)
+    np.testing.assert_allclose(float(result.values["phong.ambient"]), 0.5, atol=1e-6)
 
-    def with_radius(radius):
-        return eqx.tree_at(lambda s: s.lao.radius, scene, radius)
 
-    target = vs.render(with_radius(jnp.asarray(3.0)), cam)
+@pytest.mark.slow
+def test_fit_with_a_minimiser():
+    # BFGS linearises its objective; the render's reverse-mode gradient stands in
+    vol = vs.data.phantom("shells", shape=12).astype(jnp.float64)
+    truth = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading="phong",
+                     phong=vs.Phong(ambient=0.5, diffuse=0.4))
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))
+    start = eqx.tree_at(lambda s: s.phong.diffuse, truth, jnp.asarray(0.9))
+    result = vs.fit(start, cam, vs.render(truth, cam), params=["phong.diffuse"],
+                    solver=optx.BFGS(rtol=1e-9, atol=1e-12))
+    np.testing.assert_allclose(float(result.values["phong.diffuse"]), 0.4, atol=1e-6)
 
-    def residuals(radius, args):
-        return vs.render(with_radius(radius), cam) - target
 
-    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
-    sol = optx.least_squares(residuals, solver, jnp.asarray(2.2), max_steps=60, options=_BWD)
-    np.testing.assert_allclose(float(sol.value), 3.0, atol=1e-6)
+def test_reverse_mode_jvp_through_lao_equals_the_gradient():
+    # LAO's custom VJP has no forward mode; the wrapper's JVP is grad . tangent
+    alpha = jnp.zeros((6, 6, 6)).at[2:4, 2:4, 2:4].set(0.5)
+
+    def f(y):
+        return jnp.sum(vs.lao(alpha * y[1], directions=vs.directions.fibonacci(4),
+                              radius=y[0], offset=0.5, samples=4, max_radius=4.0))
+
+    y, dy = jnp.asarray([2.5, 0.8]), jnp.asarray([0.3, -1.1])
+    value, tangent = jax.jvp(_reverse_mode(f), (y,), (dy,))
+    np.testing.assert_allclose(float(value), float(f(y)), rtol=1e-12)
+    np.testing.assert_allclose(float(tangent), float(jnp.vdot(jax.grad(f)(y), dy)),
+                               rtol=1e-12)
+
+
+@pytest.mark.parametrize("bounds", [(None, None), (0.5, None), (None, 4.0), (0.5, 4.0)])
+def test_bounded_parameters_round_trip_and_stay_inside(bounds):
+    x = jnp.asarray([0.5 + 1e-9, 0.7, 2.0, 3.9, 4.0 - 1e-9])
+    if bounds[0] is None:
+        x = x - 10.0  # also far below the upper bound
+    u = _from_bounded(x, bounds, "p")
+    np.testing.assert_allclose(np.asarray(_to_bounded(u, bounds)), np.asarray(x), rtol=1e-7)
+    extreme = _to_bounded(jnp.asarray([-1e3, -30.0, 0.0, 30.0, 1e3]), bounds)
+    low, high = bounds
+    assert np.all(np.isfinite(extreme))
+    assert low is None or np.all(np.asarray(extreme) >= low)
+    assert high is None or np.all(np.asarray(extreme) <= high)
+    grad = jax.grad(lambda v: jnp.sum(_to_bounded(v, bounds)))(u)
+    assert np.all(np.isfinite(grad)) and np.all(np.asarray(grad) != 0)  # a bijection
+
+
+def _bad_call(**change):
+    scene = vs.Scene(volume=jnp.zeros((6, 6, 6)), transfer=vs.transfer.preset("grey"),
+                     ambient="lao")
+    cam = vs.Camera.orbit(image_shape=(4, 4))
+    kw = dict(camera=cam, target=jnp.zeros((4, 4, 4)), params=["lao.radius"])
+    kw.update(change)
+    return vs.fit(scene, kw.pop("camera"), kw.pop("target"), **kw)
+
+
+@pytest.mark.parametrize("change, error, match", [
+    (dict(params=["lao.raduis"]), ValueError, "has no field 'raduis'.*'radius'"),
+    (dict(params=["step"]), ValueError, "'step' is static"),
+    (dict(params=["lao.samples"]), ValueError, "'lao.samples' is static"),
+    (dict(params=["focus.radius"]), ValueError, "cannot take 'radius' of a NoneType"),
+    (dict(params=["lao"]), ValueError, "must name a floating-point array leaf"),
+    (dict(params=["lao..radius"]), ValueError, "dotted path"),
+    (dict(params="lao.radius"), TypeError, "single string"),
+    (dict(params=[]), ValueError, "is empty"),
+    (dict(params=["lao.radius", "lao.radius"]), ValueError, "twice"),
+    (dict(params={"lao.radius": (2.0, 1.0)}), ValueError, "low < high"),
+    (dict(params={"lao.radius": (0.0, float("inf"))}), ValueError, "finite numbers or None"),
+    (dict(params={"lao.radius": (0.0,)}), ValueError, "a pair"),
+    (dict(params={"lao.radius": (20.0, 30.0)}), ValueError, "strictly inside its bounds"),
+    (dict(camera=[]), TypeError, "non-empty sequence"),
+    (dict(camera=[vs.Camera.orbit(image_shape=(4, 4))] * 2), ValueError,
+     r"sequence of 2 images or a \(V, H, W, C\) stack"),
+    (dict(camera=[vs.Camera.orbit(image_shape=(4, 4))] * 2, target=[jnp.zeros((4, 4, 4))]),
+     ValueError, "2 cameras but 1 targets"),
+    (dict(target=jnp.zeros((4, 5, 4))), ValueError, r"must have shape \(4, 4, 4\)"),
+    (dict(weights=jnp.ones((3, 3))), ValueError, "`weights` must have the target's shape"),
+    (dict(weights=-jnp.ones((4, 4))), ValueError, "finite and >= 0"),
+    (dict(max_steps=0), ValueError, "max_steps"),
+    (dict(throw="no"), TypeError, "throw"),
+    (dict(solver=optx.Bisection(rtol=1e-3, atol=1e-3)), TypeError, "least-squares solver"),
+])
+def test_bad_input_is_refused_with_the_fix(change, error, match):
+    with pytest.raises(error, match=match):
+        _bad_call(**change)
+
+
+def test_a_non_finite_target_is_refused():
+    with pytest.raises(Exception, match="target.*NaN or inf"):
+        _bad_call(target=jnp.full((4, 4, 4), jnp.nan))

@@ -23,6 +23,8 @@ from .composition import composite as composite
 from .feature_ao import FeatureAmbientOcclusion as FeatureAmbientOcclusion
 from .feature_ao import feature_ao as feature_ao
 from .feature_ao import merge_feature_ao as merge_feature_ao
+from .fit import Fit as Fit
+from .fit import fit as fit
 from .gradient import regression_gradient as regression_gradient
 from .importance import Focus as Focus
 from .importance import Importance as Importance
