@@ -109,17 +109,19 @@ for name, goal in (("exact images", targets), ("noisy images (sigma 0.02)", nois
 
 # %% [markdown]
 # ## The loss along R
-# The mean squared difference to the exact targets at the true intensity weight,
-# for R across its bounds: one compiled render, R a traced argument.
+# The mean squared RGB difference to the exact targets at the true intensity weight,
+# for R across its bounds (the compiled render of the targets, R a leaf of the scene).
 
 # %%
-# the scene is an argument, not a constant for XLA to fold
-loss_at = eqx.filter_jit(lambda scene, r: sum(
-    jnp.sum((vs.render(eqx.tree_at(lambda s: s.lao.radius, scene, r), c) - t)[..., :3] ** 2)
-    for c, t in zip(cameras, targets, strict=True)) / sum(t[..., :3].size for t in targets))
 low, high = BOUNDS["lao.radius"]
 radii = np.linspace(low * 1.01, high * 0.99, 7 if QUICK else 25)
-landscape = [float(loss_at(truth, jnp.asarray(r, jnp.float32))) for r in radii]
+landscape = []
+for r in radii:
+    scene_r = eqx.tree_at(lambda s: s.lao.radius, truth,
+                          jnp.asarray(r, truth.lao.radius.dtype))
+    differences = [np.asarray(render(scene_r, c) - t)[..., :3]
+                   for c, t in zip(cameras, targets, strict=True)]
+    landscape.append(np.mean([np.mean(d**2) for d in differences]))
 
 # %% [markdown]
 # ## Figures and table

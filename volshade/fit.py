@@ -416,6 +416,11 @@ def fit(
     views = _views(camera, target, weights)
     max_steps = _checks.positive_int(max_steps, "max_steps", _WHERE)
     _checks.flag(throw, "throw", _WHERE)
+    if solver is not None and not isinstance(solver, optx.AbstractLeastSquaresSolver
+                                             | optx.AbstractMinimiser):
+        raise TypeError(f"{_WHERE}: `solver` must be an optimistix least-squares solver "
+                        f"(e.g. optx.LevenbergMarquardt) or minimiser (e.g. optx.BFGS), "
+                        f"got {type(solver).__name__}.")
     paths = tuple(named)
     initial = [_checks.float_leaf(_leaf(scene, p)) for p in paths]
     problem = _Problem(scene=eqx.tree_at(lambda s: [_at(s, p) for p in paths], scene, initial),
@@ -429,17 +434,13 @@ def fit(
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
         solution = optx.least_squares(_residuals, solver, u0, args=problem,
                                       max_steps=max_steps, throw=throw)
-    elif isinstance(solver, optx.AbstractMinimiser):
+    else:
         # relative to the initial loss: a mean squared error of images is small, and
         # minimisers are not invariant to the scale of their objective (quasi-Newton
         # curvature estimates drown in float32 rounding, first steps are gradient steps)
         scale = jnp.where(initial_loss > 0, initial_loss, 1)
         solution = optx.minimise(_relative_loss, solver, u0, args=(problem, scale),
                                  max_steps=max_steps, throw=throw)
-    else:
-        raise TypeError(f"{_WHERE}: `solver` must be an optimistix least-squares solver "
-                        f"(e.g. optx.LevenbergMarquardt) or minimiser (e.g. optx.BFGS), "
-                        f"got {type(solver).__name__}.")
     fitted, values = problem.place(solution.value)
     return Fit(scene=fitted, values=dict(zip(paths, values, strict=True)),
                loss=_measured_loss(problem, solution.value), initial_loss=initial_loss,
