@@ -1,8 +1,7 @@
 """Fitting with optimistix: parameters recovered from targets made with known values.
 
-LAO's gradient is a custom VJP (reverse mode only): ``vs.fit`` gives least-squares
-solvers Jacobian products by reverse mode (``options=dict(jac="bwd")``) and minimisers
-a JVP rule computed by reverse mode.
+LAO's gradient is a custom VJP (reverse mode only): ``vs.fit`` gives the residuals a
+JVP rule built from their VJP, which least-squares solvers and minimisers use.
 """
 
 import equinox as eqx
@@ -14,8 +13,6 @@ import pytest
 
 import volshade as vs
 from volshade.fit import _forward_by_reverse, _from_bounded, _to_bounded
-
-_BWD = {"jac": "bwd"}  # LAO has no forward-mode derivative
 
 
 @pytest.mark.slow
@@ -60,6 +57,14 @@ def test_fit_to_several_views_with_rgb_targets_weights_and_an_array_parameter():
     np.testing.assert_allclose(np.asarray(result.values["background"]), [0.2, 0.5, 0.7],
                                atol=1e-6)
     np.testing.assert_allclose(float(result.values["phong.ambient"]), 0.5, atol=1e-6)
+    # a fit of the same structure (another start) reuses the compiled solver
+    compiled = optx.least_squares._cached._cache_size()
+    again = vs.fit(eqx.tree_at(lambda s: (s.background, s.phong.ambient), start,
+                               (jnp.full(3, 0.3), jnp.asarray(0.7))),
+                   cams, targets, weights=weights,
+                   params={"background": (0.0, 1.0), "phong.ambient": None})
+    assert optx.least_squares._cached._cache_size() == compiled
+    np.testing.assert_allclose(float(again.values["phong.ambient"]), 0.5, atol=1e-6)
 
 
 @pytest.mark.slow
@@ -98,20 +103,40 @@ def test_forward_mode_through_lao_from_its_reverse_mode():
     np.testing.assert_allclose(np.asarray(tangent), np.asarray(fd), rtol=1e-4, atol=1e-9)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 @pytest.mark.parametrize("bounds", [(None, None), (0.5, None), (None, 4.0), (0.5, 4.0)])
-def test_bounded_parameters_round_trip_and_stay_inside(bounds):
-    x = jnp.asarray([0.5 + 1e-9, 0.7, 2.0, 3.9, 4.0 - 1e-9])
-    if bounds[0] is None:
-        x = x - 10.0  # also far below the upper bound
-    u = _from_bounded(x, bounds, "p")
-    np.testing.assert_allclose(np.asarray(_to_bounded(u, bounds)), np.asarray(x), rtol=1e-7)
-    extreme = _to_bounded(jnp.asarray([-1e3, -30.0, 0.0, 30.0, 1e3]), bounds)
+def test_bounded_parameters_round_trip_and_stay_strictly_inside(bounds, dtype):
     low, high = bounds
+    inside = [0.7, 2.0, 3.9]
+    if low is not None:
+        inside.append(float(np.nextafter(dtype(low), dtype(np.inf))))
+    if high is not None:
+        inside.append(float(np.nextafter(dtype(high), dtype(-np.inf))))
+    x = jnp.asarray(inside, dtype)
+    u = _from_bounded(x, bounds, "p")
+    assert np.all(np.isfinite(np.asarray(u)))
+    np.testing.assert_allclose(np.asarray(_to_bounded(u, bounds)), np.asarray(x),
+                               rtol=10 * float(jnp.finfo(dtype).eps))
+    # a long step rounds onto a bound without the clip (float32: 1 + 11 sigmoid(-20) == 1)
+    extreme = np.asarray(_to_bounded(jnp.asarray([-1e3, -40.0, -20.0, 0.0, 20.0, 40.0, 1e3],
+                                                 dtype), bounds))
     assert np.all(np.isfinite(extreme))
-    assert low is None or np.all(np.asarray(extreme) >= low)
-    assert high is None or np.all(np.asarray(extreme) <= high)
+    assert low is None or np.all(extreme > low)
+    assert high is None or np.all(extreme < high)
     grad = jax.grad(lambda v: jnp.sum(_to_bounded(v, bounds)))(u)
-    assert np.all(np.isfinite(grad)) and np.all(np.asarray(grad) != 0)  # a bijection
+    assert np.all(np.isfinite(grad))
+    assert np.all(np.asarray(grad)[:3] != 0)  # a bijection inside
+
+
+def test_the_fit_refuses_to_be_differentiated_through_its_data():
+    alpha = jnp.zeros((4, 4, 4)).at[1:3, 1:3, 1:3].set(0.5)
+
+    def f(a, y):
+        return vs.lao(a, directions=vs.directions.fibonacci(2), radius=y, offset=0.5,
+                      samples=2, max_radius=2.0)
+
+    with pytest.raises(TypeError, match="not differentiable with respect to the scene"):
+        jax.jvp(lambda a: _forward_by_reverse(f)(a, jnp.asarray(1.5)), (alpha,), (alpha,))
 
 
 def _bad_call(**change):
@@ -127,7 +152,9 @@ def _bad_call(**change):
     (dict(params=["lao.raduis"]), ValueError, "has no field 'raduis'.*'radius'"),
     (dict(params=["step"]), ValueError, "'step' is static"),
     (dict(params=["lao.samples"]), ValueError, "'lao.samples' is static"),
-    (dict(params=["focus.radius"]), ValueError, "cannot take 'radius' of a NoneType"),
+    (dict(params=["focus.radius"]), ValueError, "cannot take 'radius' of None.*give it one"),
+    (dict(params=[("lao", "radius")]), TypeError, "paths as strings"),
+    (dict(params={"lao.radius": ("a", 1.0)}), TypeError, "numbers or None"),
     (dict(params=["lao"]), ValueError, "must name a floating-point array leaf"),
     (dict(params=["lao..radius"]), ValueError, "dotted path"),
     (dict(params="lao.radius"), TypeError, "single string"),
@@ -145,6 +172,9 @@ def _bad_call(**change):
     (dict(target=jnp.zeros((4, 5, 4))), ValueError, r"must have shape \(4, 4, 4\)"),
     (dict(weights=jnp.ones((3, 3))), ValueError, "`weights` must have the target's shape"),
     (dict(weights=-jnp.ones((4, 4))), ValueError, "finite and >= 0"),
+    (dict(weights=jnp.zeros((4, 4))), ValueError, "all 0"),
+    (dict(camera=[vs.Camera.orbit(image_shape=(4, 4))] * 2, target=[jnp.zeros((4, 4, 4))] * 2,
+          weights=jnp.ones(4)), ValueError, "sequence of 2 weight arrays"),
     (dict(max_steps=0), ValueError, "max_steps"),
     (dict(throw="no"), TypeError, "throw"),
     (dict(solver=optx.Bisection(rtol=1e-3, atol=1e-3)), TypeError, "least-squares solver"),

@@ -24,6 +24,7 @@ from .feature_ao import FeatureAmbientOcclusion as FeatureAmbientOcclusion
 from .feature_ao import feature_ao as feature_ao
 from .feature_ao import merge_feature_ao as merge_feature_ao
 from .fit import Fit as Fit
+from .fit import GaussNewtonLineSearch as GaussNewtonLineSearch
 from .fit import fit as fit
 from .gradient import regression_gradient as regression_gradient
 from .importance import Focus as Focus

@@ -5,11 +5,12 @@ r"""Fitting a scene's continuous parameters to target images with optimistix.
 scene from one or more cameras, and minimises the mean squared difference to the
 target images,
 
-$$ \mathcal{L}(\theta) = \frac{1}{N} \sum_{v} \sum_{p,c} w_{v,p,c}
-    \big(I_v(\theta)_{p,c} - T_{v,p,c}\big)^2 ,$$
+$$ \mathcal{L}(\theta) = \frac{\sum_{v,p,c} w_{v,p,c}
+    \big(I_v(\theta)_{p,c} - T_{v,p,c}\big)^2}{\sum_{v,p,c} w_{v,p,c}} ,$$
 
-over the $N$ compared values (pixels $p$ times channels $c$ of views $v$; $w = 1$
-unless ``weights`` are given), by Gauss--Newton with a line search on the residuals
+the weighted mean over the compared values (pixels $p$ and channels $c$ of views
+$v$; $w = 1$ unless ``weights`` are given, so that a mask gives the mean over the
+pixels it keeps), by Gauss--Newton with a line search on the residuals
 by default (:class:`GaussNewtonLineSearch`; any optimistix least-squares solver, or
 any minimiser on $\mathcal{L} / \mathcal{L}(\theta_0)$). Every parameter is an
 array leaf, so the solver's loop is compiled once per fit, whatever values it tries.
@@ -21,9 +22,11 @@ opacity above 1 would otherwise stop the fit with a runtime error). The initial
 value must lie strictly inside.
 
 Derivatives: the render is differentiated in reverse mode (LAO's gradient is a
-custom VJP with checkpointing, which has no forward mode), so least-squares solvers
-build their Jacobian products from VJPs (``jac="bwd"``) and minimisers get the
-gradient of $\mathcal{L}$ through a JVP rule computed by reverse mode. The fit is a
+custom VJP with checkpointing, which has no forward mode), and the residuals get a
+JVP rule built from their VJP: a least-squares solver builds the Jacobian with one
+transposed VJP per scalar parameter and step, a minimiser gets the gradient from one
+VJP per step. For a few parameters the default solver is the better choice; for
+hundreds (a whole transfer function), a minimiser costs less per step. The fit is a
 tool, not a differentiable layer: differentiating through :func:`fit` is not
 supported.
 """
@@ -39,6 +42,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
+from jax.custom_derivatives import SymbolicZero
 
 from . import _checks
 from ._types import Array, ArrayLike, Float
@@ -93,6 +97,9 @@ def _child(node: Any, part: str, path: str) -> Any:
         return getattr(node, part)
     if isinstance(node, list | tuple) and part.isdigit() and int(part) < len(node):
         return node[int(part)]
+    if node is None:
+        raise ValueError(f"{_WHERE}: {path!r}: cannot take {part!r} of None: the scene "
+                         f"has no value there; give it one (e.g. `focus=vs.Focus()`) first.")
     raise ValueError(f"{_WHERE}: {path!r}: cannot take {part!r} of a "
                      f"{type(node).__name__} (the scene holds {node!r} there).")
 
@@ -111,9 +118,10 @@ def _leaf(scene: Scene, path: str) -> Array | float:
         node = _child(node, part, path)
     if not (eqx.is_inexact_array(node)
             or isinstance(node, float | int) and not isinstance(node, bool)):
+        what = (f"an array of dtype {node.dtype}" if eqx.is_array(node)
+                else f"a {type(node).__name__}; name one of its array fields instead")
         raise ValueError(f"{_WHERE}: {path!r} must name a floating-point array leaf of the "
-                         f"scene, got a {type(node).__name__}; name one of its array "
-                         f"fields instead.")
+                         f"scene, got {what}.")
     return node
 
 
@@ -123,7 +131,11 @@ def _bounds(path: str, value: Any) -> Bounds:
     if not isinstance(value, tuple | list) or len(value) != 2:
         raise ValueError(f"{_WHERE}: the bounds of {path!r} must be None or a pair "
                          f"(low, high), each a number or None, got {value!r}.")
-    low, high = (None if b is None else float(b) for b in value)
+    try:
+        low, high = (None if b is None else float(b) for b in value)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{_WHERE}: the bounds of {path!r} must be numbers or None, got "
+                        f"{value!r}.") from err
     if any(b is not None and not math.isfinite(b) for b in (low, high)):
         raise ValueError(f"{_WHERE}: the bounds of {path!r} must be finite numbers or None "
                          f"(None for an open end), got {value!r}.")
@@ -139,15 +151,22 @@ def _softplus_inverse(y: Array) -> Array:
 
 
 def _to_bounded(u: Array, bounds: Bounds) -> Array:
-    """The bijection from the real line onto the interval ``bounds``."""
+    """The bijection from the real line onto the open interval ``bounds``. Rounding
+    would put a long step exactly on a bound (in float32, ``1 + 11 * sigmoid(-20)`` is
+    1), where a kernel may refuse the value (an LAO radius equal to its offset), so
+    the result is kept to the floats strictly inside."""
     low, high = bounds
     if low is not None and high is not None:
-        return low + (high - low) * jax.nn.sigmoid(u)
-    if low is not None:
-        return low + jax.nn.softplus(u)
-    if high is not None:
-        return high - jax.nn.softplus(u)
-    return u
+        x = low + (high - low) * jax.nn.sigmoid(u)
+    elif low is not None:
+        x = low + jax.nn.softplus(u)
+    elif high is not None:
+        x = high - jax.nn.softplus(u)
+    else:
+        return u
+    inside_low = None if low is None else jnp.nextafter(jnp.asarray(low, u.dtype), jnp.inf)
+    inside_high = None if high is None else jnp.nextafter(jnp.asarray(high, u.dtype), -jnp.inf)
+    return jnp.clip(x, inside_low, inside_high)
 
 
 def _from_bounded(x: Array, bounds: Bounds, path: str) -> Array:
@@ -160,13 +179,18 @@ def _from_bounded(x: Array, bounds: Bounds, path: str) -> Array:
                          f"strictly inside its bounds ({low}, {high}); start from a value "
                          f"inside or widen the bounds.")
     if low is not None and high is not None:
-        p = (x - low) / (high - low)
-        return jnp.log(p) - jnp.log1p(-p)
-    if low is not None:
-        return _softplus_inverse(x - low)
-    if high is not None:
-        return _softplus_inverse(high - x)
-    return x
+        u = jnp.log(x - low) - jnp.log(high - x)  # accurate near either bound
+    elif low is not None:
+        u = _softplus_inverse(x - low)
+    elif high is not None:
+        u = _softplus_inverse(high - x)
+    else:
+        return x
+    known = _checks.concrete(u)
+    if known is not None and not np.all(np.isfinite(known)):
+        raise ValueError(f"{_WHERE}: the initial value of {path!r} is too close to its "
+                         f"bounds ({low}, {high}) for {x.dtype}; start further inside.")
+    return u
 
 
 def _parameters(scene: Scene, params: Any) -> dict[str, Bounds]:
@@ -177,6 +201,9 @@ def _parameters(scene: Scene, params: Any) -> dict[str, Bounds]:
     if isinstance(params, Mapping):
         named = {p: _bounds(p, b) for p, b in params.items()}
     elif isinstance(params, Sequence):
+        if not all(isinstance(p, str) for p in params):
+            raise TypeError(f"{_WHERE}: `params` must hold paths as strings, e.g. "
+                            f"('lao.radius',), got {list(params)!r}.")
         if len(set(params)) != len(params):
             raise ValueError(f"{_WHERE}: `params` names a parameter twice: {list(params)}.")
         named = {p: (None, None) for p in params}
@@ -186,11 +213,15 @@ def _parameters(scene: Scene, params: Any) -> dict[str, Bounds]:
     if not named:
         raise ValueError(f"{_WHERE}: `params` is empty; name at least one parameter, e.g. "
                          f"params=('lao.radius',).")
-    leaves = [_leaf(scene, p) for p in named]
-    arrays = [leaf for leaf in leaves if not isinstance(leaf, float | int)]
-    if len({id(leaf) for leaf in arrays}) != len(arrays):
-        raise ValueError(f"{_WHERE}: two of {list(named)} are the same array in the scene; "
-                         f"name it once.")
+    seen: dict[int, str] = {}
+    for path in named:
+        leaf = _leaf(scene, path)
+        if isinstance(leaf, float | int):
+            continue
+        if id(leaf) in seen:
+            raise ValueError(f"{_WHERE}: {seen[id(leaf)]!r} and {path!r} are the same array "
+                             f"in the scene; name it once.")
+        seen[id(leaf)] = path
     return named
 
 
@@ -199,7 +230,7 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
     cameras = [camera] if isinstance(camera, Camera) else list(camera)
     if not all(isinstance(c, Camera) for c in cameras) or not cameras:
         raise TypeError(f"{_WHERE}: `camera` must be a volshade.Camera or a non-empty "
-                        f"sequence of them.")
+                        f"sequence of them, got {camera!r:.80}.")
     single = isinstance(camera, Camera)
     if not single and not isinstance(target, list | tuple) and np.ndim(target) != 4:
         raise ValueError(f"{_WHERE}: for {len(cameras)} cameras, `target` must be a "
@@ -209,6 +240,12 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
     if len(targets) != len(cameras):
         raise ValueError(f"{_WHERE}: {len(cameras)} cameras but {len(targets)} targets; "
                          f"give one target image per camera.")
+    if weights is not None and not single and not isinstance(weights, list | tuple) \
+            and np.ndim(weights) < 3:
+        raise ValueError(f"{_WHERE}: for {len(cameras)} cameras, `weights` must be a "
+                         f"sequence of {len(cameras)} weight arrays (e.g. [w] * "
+                         f"{len(cameras)}) or a stack with one per camera, got shape "
+                         f"{np.shape(weights)}.")
     weight_list = ([weights] if single else list(weights)) if weights is not None \
         else [None] * len(cameras)
     if len(weight_list) != len(cameras):
@@ -233,7 +270,9 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
                                  f"{tuple(tgt.shape)} or its image shape "
                                  f"{cam.image_shape}, got {tuple(w.shape)}.") from err
             w = _checks.refuse(w, [(~jnp.all(jnp.isfinite(w) & (w >= 0)),
-                                    "`weights` must be finite and >= 0.")], _WHERE)
+                                    "`weights` must be finite and >= 0."),
+                                   (jnp.sum(w) <= 0, "`weights` are all 0: nothing to "
+                                    "compare in that view; leave the camera out.")], _WHERE)
         views.append((cam, tgt, w))
     return views
 
@@ -251,13 +290,21 @@ def _forward_by_reverse(fn: Callable[[Any, Any], Any]) -> Callable[[Any, Any], A
     def wrapped(data, y):
         return fn(data, y)
 
-    @wrapped.defjvp
-    def _(primals, tangents):
-        (data, y), (_, dy) = primals, tangents
+    def rule(primals, tangents):
+        (data, y), (d_data, dy) = primals, tangents
+        if not all(isinstance(t, SymbolicZero) for t in jax.tree_util.tree_leaves(
+                d_data, is_leaf=lambda t: isinstance(t, SymbolicZero))):
+            raise TypeError(f"{_WHERE}: the fit is not differentiable with respect to the "
+                            f"scene, cameras or targets (only its parameters are traced "
+                            f"in forward mode).")
+        dy = jax.tree_util.tree_map(
+            lambda t, v: jnp.zeros_like(v) if isinstance(t, SymbolicZero) else t, dy, y,
+            is_leaf=lambda t: isinstance(t, SymbolicZero))
         out, vjp = jax.vjp(lambda v: fn(data, v), y)
         (jvp,) = jax.linear_transpose(vjp, out)((dy,))
         return out, jvp
 
+    wrapped.defjvp(rule, symbolic_zeros=True)
     return wrapped
 
 
@@ -282,7 +329,9 @@ class _Problem(eqx.Module):
 
     def residuals(self, u: list[Array]) -> list[Array]:
         fitted, _ = self.place(u)
-        scale = 1 / math.sqrt(sum(t.size for t in self.targets))
+        total = sum(t.size if w is None else jnp.sum(w)
+                    for t, w in zip(self.targets, self.weights, strict=True))
+        scale = 1 / jnp.sqrt(total)
         out = []
         for cam, tgt, w in zip(self.cameras, self.targets, self.weights, strict=True):
             diff = render(fitted, cam)[..., : tgt.shape[-1]] - tgt
@@ -372,17 +421,19 @@ def fit(
             ``(H, W, 3)`` RGB (then the accumulated opacity is not compared), for
             each camera.
         params: paths of the parameters to fit (``"lao.radius"``,
-            ``"importance.intensity"``, ``"transfer.opacities"``, ``"phong.ambient"``;
-            a sequence index is a number, ``"feature_ao.features.0.low"``), as a
-            sequence, or as a mapping from path to bounds ``(low, high)`` (either end
-            ``None`` for an open one; ``None`` for no bounds). Array parameters are
-            fitted element by element, each element within the bounds. Give a
-            parameter with a valid range bounds inside it: an LAO radius between its
-            offset and ``max_radius``, an opacity in ``(0, 1)``; a step outside stops
-            the fit with the kernel's runtime error.
-        solver: an ``optimistix`` least-squares solver (default
-            :class:`GaussNewtonLineSearch` with ``rtol = sqrt(eps)``, ``atol = eps``
-            of the render's dtype) or minimiser (e.g. ``optx.BFGS``).
+            ``"importance.intensity"``, ``"transfer.opacities"``, ``"phong.ambient"``,
+            ``"feature_ao.lao.radius"``; a number indexes a sequence), as a sequence,
+            or as a mapping from path to bounds ``(low, high)`` (either end ``None``
+            for an open one; ``None`` for no bounds). Array parameters are
+            fitted element by element, each element within the bounds. A parameter
+            with a valid range needs bounds inside it (an LAO radius between its
+            offset and ``max_radius``, an opacity in ``(0, 1)``): a step outside
+            would stop the fit with the kernel's runtime error. A parameter the image
+            does not depend on (an interval feature's ends, which only select
+            voxels) gets no step.
+        solver: an ``optimistix`` least-squares solver or minimiser (e.g.
+            ``optx.BFGS``); by default ``vs.GaussNewtonLineSearch`` with
+            ``rtol = sqrt(eps)`` and ``atol = eps`` of the render's dtype.
         weights: optional weights $w \ge 0$ for each camera: broadcastable to the
             target's shape (``(4,)`` weighs the channels), or of its image shape
             ``(H, W)`` (e.g. a mask of the pixels that matter).
@@ -422,7 +473,10 @@ def fit(
                         f"(e.g. optx.LevenbergMarquardt) or minimiser (e.g. optx.BFGS), "
                         f"got {type(solver).__name__}.")
     paths = tuple(named)
-    initial = [_checks.float_leaf(_leaf(scene, p)) for p in paths]
+    # strongly typed, as constructors store them: jit caches a weakly typed start
+    # (from a Python float) apart, and would compile the solver again
+    initial = [jnp.array(x, dtype=x.dtype)
+               for x in (_checks.float_leaf(_leaf(scene, p)) for p in paths)]
     problem = _Problem(scene=eqx.tree_at(lambda s: [_at(s, p) for p in paths], scene, initial),
                        cameras=tuple(c for c, _, _ in views),
                        targets=tuple(t for _, t, _ in views),
