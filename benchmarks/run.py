@@ -26,7 +26,7 @@ import sys
 
 import jax
 
-BENCHMARKS = ("render", "lao", "feature_ao", "cao", "obscurance", "composition", "gpu",
+BENCHMARKS = ("render", "lao", "feature_ao", "cao", "fit", "obscurance", "composition", "gpu",
               "gpu_recheck", "lao_pallas", "pallas_sass")
 
 

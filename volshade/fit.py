@@ -376,8 +376,9 @@ class GaussNewtonLineSearch(optx.AbstractGaussNewton):
     stopped after 2 steps at 0.500006; this solver reaches 1.999998 in 5).
 
     Attributes:
-        rtol, atol: optimistix's Cauchy termination: parameters and residuals both
-            change by less than ``atol + rtol * |value|`` in one step.
+        rtol, atol: optimistix's Cauchy termination: the parameters (as the solver
+            sees them: through the bounds' bijections) and the residuals both change
+            by less than ``atol + rtol * |value|`` in one step.
     """
 
     rtol: float
