@@ -193,7 +193,8 @@ def _from_bounded(x: Array, bounds: Bounds, path: str) -> Array:
     return u
 
 
-def _parameters(scene: Scene, params: Any) -> dict[str, Bounds]:
+def _parameters(scene: Scene, params: Any) -> tuple[dict[str, Bounds], list[Any]]:
+    """The parameters' bounds by path, and their leaves in the scene, checked."""
     if isinstance(params, str):
         raise TypeError(f"{_WHERE}: `params` must be a sequence of paths or a mapping from "
                         f"paths to bounds, got the single string {params!r}; write "
@@ -213,16 +214,33 @@ def _parameters(scene: Scene, params: Any) -> dict[str, Bounds]:
     if not named:
         raise ValueError(f"{_WHERE}: `params` is empty; name at least one parameter, e.g. "
                          f"params=('lao.radius',).")
+    leaves = [_leaf(scene, path) for path in named]
     seen: dict[int, str] = {}
-    for path in named:
-        leaf = _leaf(scene, path)
+    for path, leaf in zip(named, leaves, strict=True):
         if isinstance(leaf, float | int):
             continue
         if id(leaf) in seen:
             raise ValueError(f"{_WHERE}: {seen[id(leaf)]!r} and {path!r} are the same array "
                              f"in the scene; name it once.")
         seen[id(leaf)] = path
-    return named
+    return named, leaves
+
+
+def _one_per_camera(value: Any, name: str, count: int, single: bool, *, what: str,
+                    stack: str, stacked_ndim: int, counted: str) -> list[Any]:
+    """``value`` as a list with one entry per camera: itself for a single camera, else a
+    sequence or a stack along a leading axis (at least ``stacked_ndim`` dimensions), so
+    that an array meant for every camera is not silently split into its rows."""
+    if single:
+        return [value]
+    if not isinstance(value, list | tuple) and np.ndim(value) < stacked_ndim:
+        raise ValueError(f"{_WHERE}: for {count} cameras, `{name}` must be a sequence of "
+                         f"{count} {what} or {stack}, got shape {np.shape(value)}.")
+    values = list(value)
+    if len(values) != count:
+        raise ValueError(f"{_WHERE}: {count} cameras but {len(values)} {counted}; give "
+                         f"one per camera.")
+    return values
 
 
 def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, Array | None]]:
@@ -232,25 +250,13 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
         raise TypeError(f"{_WHERE}: `camera` must be a volshade.Camera or a non-empty "
                         f"sequence of them, got {camera!r:.80}.")
     single = isinstance(camera, Camera)
-    if not single and not isinstance(target, list | tuple) and np.ndim(target) != 4:
-        raise ValueError(f"{_WHERE}: for {len(cameras)} cameras, `target` must be a "
-                         f"sequence of {len(cameras)} images or a (V, H, W, C) stack, got "
-                         f"shape {np.shape(target)}.")
-    targets = [target] if single else list(target)
-    if len(targets) != len(cameras):
-        raise ValueError(f"{_WHERE}: {len(cameras)} cameras but {len(targets)} targets; "
-                         f"give one target image per camera.")
-    if weights is not None and not single and not isinstance(weights, list | tuple) \
-            and np.ndim(weights) < 3:
-        raise ValueError(f"{_WHERE}: for {len(cameras)} cameras, `weights` must be a "
-                         f"sequence of {len(cameras)} weight arrays (e.g. [w] * "
-                         f"{len(cameras)}) or a stack with one per camera, got shape "
-                         f"{np.shape(weights)}.")
-    weight_list = ([weights] if single else list(weights)) if weights is not None \
-        else [None] * len(cameras)
-    if len(weight_list) != len(cameras):
-        raise ValueError(f"{_WHERE}: {len(cameras)} cameras but {len(weight_list)} weights; "
-                         f"give one weight image per camera.")
+    targets = _one_per_camera(target, "target", len(cameras), single, what="images",
+                              stack="a (V, H, W, C) stack", stacked_ndim=4,
+                              counted="targets")
+    weight_list = [None] * len(cameras) if weights is None else _one_per_camera(
+        weights, "weights", len(cameras), single, what=f"weight arrays (e.g. [w] * "
+        f"{len(cameras)})", stack="a stack with one per camera", stacked_ndim=3,
+        counted="weights")
     views = []
     for cam, tgt, w in zip(cameras, targets, weight_list, strict=True):
         tgt = _checks.as_float_array(tgt, "target", _WHERE)
@@ -464,7 +470,7 @@ def fit(
         >>> round(float(result.values["importance.intensity"]), 3)
         2.0
     """
-    named = _parameters(scene, params)
+    named, leaves = _parameters(scene, params)
     views = _views(camera, target, weights)
     max_steps = _checks.positive_int(max_steps, "max_steps", _WHERE)
     _checks.flag(throw, "throw", _WHERE)
@@ -476,8 +482,7 @@ def fit(
     paths = tuple(named)
     # strongly typed, as constructors store them: jit caches a weakly typed start
     # (from a Python float) apart, and would compile the solver again
-    initial = [jnp.array(x, dtype=x.dtype)
-               for x in (_checks.float_leaf(_leaf(scene, p)) for p in paths)]
+    initial = [jnp.array(x, dtype=x.dtype) for x in map(_checks.float_leaf, leaves)]
     problem = _Problem(scene=eqx.tree_at(lambda s: [_at(s, p) for p in paths], scene, initial),
                        cameras=tuple(c for c, _, _ in views),
                        targets=tuple(t for _, t, _ in views),
