@@ -26,8 +26,8 @@ import sys
 
 import jax
 
-BENCHMARKS = ("render", "lao", "feature_ao", "cao", "fit", "obscurance", "composition", "gpu",
-              "gpu_recheck", "lao_pallas", "pallas_sass")
+BENCHMARKS = ("render", "views", "lao", "feature_ao", "cao", "fit", "obscurance", "composition",
+              "gpu", "gpu_recheck", "lao_pallas", "pallas_sass")
 
 
 def _format_table(rows: list[dict]) -> str:

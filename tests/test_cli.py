@@ -7,7 +7,7 @@ from volshade import cli
 
 
 def test_render_command_writes_a_png(tmp_path):
-    out = tmp_path / "shells.png"
+    out = tmp_path / "new" / "folder" / "shells.png"  # made if missing, as demo's is
     rc = cli.main(["render", "shells", "--out", str(out), "--size", "16", "--image", "24",
                    "--preset", "shells", "--shading", "phong"])
     assert rc == 0
@@ -30,6 +30,10 @@ def test_cli_errors(tmp_path, capsys):
     assert cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--preset", "nope",
                      "--size", "8", "--image", "8"]) == 2
     assert "unknown transfer-function preset 'nope'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # features cannot be given on a command line
+        cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--ambient",
+                  "feature_ao"])
+    assert "invalid choice: 'feature_ao'" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="unknown volume"):
         cli.main(["render", "teapot", "--out", str(tmp_path / "x.png")])
     with pytest.raises(SystemExit, match="--size must be >= 1"):

@@ -170,6 +170,7 @@ def _bad_call(**change):
     (dict(camera=[vs.Camera.orbit(image_shape=(4, 4))] * 2, target=[jnp.zeros((4, 4, 4))]),
      ValueError, "2 cameras but 1 targets"),
     (dict(target=jnp.zeros((4, 5, 4))), ValueError, r"must have shape \(4, 4, 4\)"),
+    (dict(target=np.zeros((4, 4, 4), np.uint8)), TypeError, "integer dtype uint8.*img_as_float"),
     (dict(weights=jnp.ones((3, 3))), ValueError, "`weights` must have the target's shape"),
     (dict(weights=-jnp.ones((4, 4))), ValueError, "finite and >= 0"),
     (dict(weights=jnp.zeros((4, 4))), ValueError, "all 0"),

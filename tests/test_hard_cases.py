@@ -350,6 +350,26 @@ def test_lao_gradients_at_opacity_zero_and_one(value, radius, offset):
         assert abs(ad - fd) <= 1e-4 * abs(fd) + 1e-7, (ad, fd)  # fd error O(h^2)
 
 
+@pytest.mark.parametrize("implementation", ["xla", "pallas"])
+def test_lao_opaque_blocks_blend_to_exactly_one_in_any_direction(implementation):
+    # oblique rays blend eight 1s; summed with their weights they can round a few ulps
+    # below 1, where the corrected opacity's slope r (1 - alpha)^(r - 1) (r = 0.34 here)
+    # is ~1e8 in float64 but ~0.5 in float32: the nested lerps keep exactly 1
+    dirs = vs.directions.fibonacci(20)
+    grads, values = [], []
+    for dtype in (jnp.float64, jnp.float32):
+        def loss(a, dtype=dtype):
+            return jnp.sum(vs.lao(a, directions=dirs.astype(dtype), radius=2.0, offset=0.3,
+                                  samples=5, opacity_correction=True,
+                                  implementation=implementation))
+        value, grad = jax.value_and_grad(loss)(jnp.ones((6, 6, 6), dtype))
+        values.append(float(value))
+        grads.append(np.asarray(grad, np.float64))
+    assert np.max(np.abs(grads[0])) < 1  # the border's rays leave the block: O(1) slopes
+    np.testing.assert_allclose(grads[1], grads[0], rtol=1e-5, atol=1e-6)
+    assert values[1] == pytest.approx(values[0], rel=1e-6)
+
+
 @pytest.mark.parametrize("value", [0.0, 1.0])
 def test_lao_radius_gradient_at_opacity_zero_and_one(value):
     # a radius off the kinks (samples between voxel centres): d/dR and d/da match central

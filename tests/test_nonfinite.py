@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
+from volshade.clip import SphereClip, affected_mask
 from volshade.importance import Importance, focus_weights, sample_importance
 from volshade.obscurance import obscurance_shading, threshold
 from volshade.saliency import modulate_opacity, opacity_factor
@@ -34,6 +35,14 @@ CASES = {
     "TransferFunction.extinction": (lambda x: TF.extinction(x),
                                     r"TransferFunction\.extinction.*volume"),
     "TransferFunction call": (lambda x: TF(x, step=0.5), r"TransferFunction\.__call__.*volume"),
+    "sample_importance global_weight": (
+        lambda x: sample_importance(Importance(intensity=1.0), intensity=jnp.ones(3),
+                                    global_weight=x), "global_weight"),
+    "focus_weights inside": (
+        lambda x: focus_weights((4, 4), center=(1.0, 1.0), radius=1.0, inside=x[1]), "inside"),
+    "affected_mask radius": (
+        lambda x: affected_mask((4, 4, 4), SphereClip(centre=(1.0, 1.0, 1.0), radius=1.0),
+                                radius=x[1]), "radius"),
     "modulate_opacity threshold": (
         lambda x: modulate_opacity(jnp.ones((2, 2, 2)), jnp.ones((2, 2, 2)), threshold=x[1]),
         "threshold"),
@@ -54,3 +63,20 @@ def test_non_finite_input_is_refused(name, bad, jit):
 def test_integer_importance_weights_are_accepted():
     imp, _ = sample_importance(Importance(intensity=2), intensity=jnp.ones(3))
     assert imp.tolist() == [2.0, 2.0, 2.0]
+
+
+def test_modulate_opacity_refuses_saliency_outside_the_unit_range():
+    # a saliency below 0 would give negative opacities, above 1 opacities clipped to 1
+    for value in (-0.5, 1.5):
+        with pytest.raises(Exception, match=r"`saliency` .*\[0, 1\]"):
+            modulate_opacity(jnp.full((1, 1, 2), 0.5), jnp.full((1, 1, 2), value), threshold=-1.0)
+
+
+def test_sample_importance_refuses_features_it_would_clip():
+    imp = Importance(extinction=1.0, lighting=1.0)
+    for features, name in ((dict(extinction=jnp.asarray([-5.0, 1.0])), "extinction"),
+                           (dict(optical_depth=jnp.asarray([-1.0])), "optical_depth"),
+                           (dict(gradient_magnitude=jnp.asarray([2.0])), "gradient_magnitude")):
+        for fn in (sample_importance, jax.jit(sample_importance)):
+            with pytest.raises(Exception, match=f"`{name}` must"):
+                jax.block_until_ready(fn(imp, **features))

@@ -57,6 +57,13 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     (lambda: vs.Phong(shininess=0.0), ValueError, "shininess` must be > 0"),
     (lambda: vs.Phong(specular=-1.0), ValueError, "specular"),
     (lambda: vs.LocalAmbientOcclusion(-1.0), ValueError, "radius` must be .* got -1.0"),
+    (lambda: vs.LocalAmbientOcclusion(1.0), ValueError, r"`radius` \(1.0\) must be > `offset`"),
+    (lambda: vs.LocalAmbientOcclusion(4.0, offset=-1.0), ValueError, "`offset` must be"),
+    (lambda: vs.Focus(radius=0.0), ValueError, "`radius` must be > 0 .*image height"),
+    (lambda: vs.Importance(darkening=-10.0), ValueError, "`darkening` must be >= 0"),
+    (lambda: vs.Importance(specular_exponent=-1.0), ValueError, "`specular_exponent` must be > 0"),
+    (lambda: vs.Importance(silhouette_start=0.9, silhouette_end=0.1), ValueError,
+     "`silhouette_start` must be < `silhouette_end`"),
 ])
 def test_parameter_modules_refuse_bad_values_at_construction(build, exc, match):
     with pytest.raises(exc, match=match):
@@ -87,6 +94,21 @@ def test_parameter_modules_accept_traced_values():
     out = jax.jit(lambda d, t: (vs.ObscuranceParams(d_max=d).d_max,
                                 vs.SaliencyModulation(threshold=t).threshold))(4.0, 0.2)
     assert [float(x) for x in out] == [4.0, pytest.approx(0.2)]
+
+
+def test_traced_values_out_of_range_are_refused_by_the_renderer():
+    # under jit (or in a fit) construction cannot see the values; the render checks them
+    def render(phong_ambient, darkening):
+        scene = vs.Scene(volume=VOL, transfer=TF, shading="phong",
+                         phong=vs.Phong(ambient=phong_ambient), composition="importance",
+                         importance=vs.Importance(silhouette=1.0, darkening=darkening))
+        return vs.render(scene, CAM)
+
+    assert np.all(np.isfinite(jax.jit(render)(0.3, 4.0)))
+    with pytest.raises(Exception, match="volshade.Phong: `ambient` must be a finite number"):
+        jax.block_until_ready(jax.jit(render)(-1.0, 4.0))
+    with pytest.raises(Exception, match="volshade.Importance: `darkening` must be >= 0"):
+        jax.block_until_ready(jax.jit(render)(0.3, -10.0))
 
 
 def test_from_view_refuses_zero_and_nan_directions():

@@ -411,6 +411,11 @@ def test_camera_geometry_and_png(tmp_path):
 
     img = io.imread(tmp_path / "img.png")
     assert img.shape == (4, 6, 3) and int(img[0, 0, 0]) in (127, 128)
+    save_png(tmp_path / "slice.png", jnp.linspace(0, 1, 12).reshape(3, 4))  # e.g. an AO slice
+    grey = io.imread(tmp_path / "slice.png")
+    assert grey.shape == (3, 4) and grey[0, 0] == 0 and grey[-1, -1] == 255
+    with pytest.raises(ValueError, match=r"must be \(H, W\), \(H, W, 3\) or"):
+        save_png(tmp_path / "x.png", jnp.ones((2, 2, 2)))
 
 
 def test_intersect_box_matches_the_numpy_slab_method():

@@ -59,6 +59,44 @@ def test_effects_that_are_off_are_not_traced(monkeypatch):
     assert sorted(calls) == ["ambient", "gradient"]
 
 
+def test_several_views_share_what_does_not_depend_on_the_view(monkeypatch):
+    calls = []
+    real_lao = scene_module.AMBIENT["lao"]
+    monkeypatch.setitem(scene_module.AMBIENT, "lao", lambda sc: calls.append("lao") or real_lao(sc))
+    render_module = sys.modules["volshade.render"]
+    real_gradient = render_module.regression_gradient
+    monkeypatch.setattr(render_module, "regression_gradient",
+                        lambda *a, **k: calls.append("gradient") or real_gradient(*a, **k))
+    scene = Scene(volume=jnp.asarray(np.random.default_rng(1).random((8, 8, 8))),
+                  transfer=preset("grey"), shading="phong", ambient="lao",
+                  lao=LocalAmbientOcclusion(2.5, directions=6, samples=3),
+                  composition="importance", importance=Importance(intensity=2.0),
+                  focus=Focus(center=(0.4, 0.6), radius=0.3))
+    alike = [Camera.orbit(azimuth=a, elevation=15.0, image_shape=(5, 4)) for a in (0, 70, 140)]
+    mixed = [alike[0], Camera.orbit(azimuth=200.0, image_shape=(3, 6)),
+             Camera.orbit(azimuth=250.0, image_shape=(5, 4), projection="orthographic")]
+    for cameras in (alike, tuple(mixed)):  # one mapped march; a march per camera
+        calls.clear()
+        images = eqx.filter_jit(render)(scene, cameras)
+        assert sorted(calls) == ["gradient", "lao"]  # once, not once per camera
+        assert isinstance(images, list) and len(images) == 3
+        for image, cam in zip(images, cameras, strict=True):
+            np.testing.assert_allclose(image, eqx.filter_jit(render)(scene, cam), atol=1e-12)
+
+    def loss(radius, cameras):
+        s = eqx.tree_at(lambda s: s.lao.radius, scene, radius)
+        images = render(s, cameras) if isinstance(cameras, list) else [render(s, cameras)]
+        return sum(jnp.sum(jnp.arange(i.size).reshape(i.shape) * i) for i in images)
+
+    grad = eqx.filter_jit(jax.grad(loss))
+    radius = scene.lao.radius
+    np.testing.assert_allclose(grad(radius, alike), sum(grad(radius, c) for c in alike),
+                               rtol=1e-10)
+    for bad in ([], (), [alike[0], "front"], iter(alike), None):
+        with pytest.raises(TypeError, match="`camera` must be a volshade.Camera|every entry"):
+            render(scene, bad)
+
+
 def test_scene_is_a_pytree_for_jit_vmap_grad():
     cam = Camera.orbit(azimuth=15.0, image_shape=(4, 4))
     s = Scene(volume=_volume(), transfer=preset("grey"), shading="phong")
@@ -85,6 +123,11 @@ def test_scene_errors():
         Scene(volume=_volume(), transfer=tf, composition="mip")
     with pytest.raises(ValueError, match="ambient_volume"):
         Scene(volume=_volume(), transfer=tf, ambient="volume")
+    with pytest.raises(ValueError, match="`ambient_volume` is used only with ambient='volume'"):
+        Scene(volume=_volume(), transfer=tf, ambient_volume=jnp.ones((6, 6, 6)))  # ambient none
+    with pytest.raises(ValueError, match="`feature_ao` is used only with ambient='feature_ao'"):
+        Scene(volume=_volume(), transfer=tf, ambient="lao",
+              feature_ao=vs.FeatureAmbientOcclusion([vs.IntervalFeature(0.0, 0.5)]))
     with pytest.raises(ValueError, match="3 dimensions"):
         Scene(volume=jnp.zeros((3, 3)), transfer=tf)
     with pytest.raises(TypeError, match="TransferFunction"):
@@ -279,6 +322,8 @@ def test_non_finite_parameters_are_refused_by_name(jit):
         (vs.Scene(volume=vol, transfer=tf, composition="importance",
                   importance=Importance(intensity=-jnp.inf)), cam, "scene.importance.intensity"),
     ]
+    cases.append((vs.Scene(volume=vol, transfer=tf),  # one of several views
+                  [cam, vs.Camera.orbit(azimuth=jnp.nan, image_shape=(6, 6))], "camera[1].eye"))
     nan_float = eqx.tree_at(lambda s: s.phong.diffuse, cases[0][0], float("nan"))
     cases.append((nan_float, cam, "scene.phong.diffuse"))  # a Python float leaf
     for scene, camera, name in cases:

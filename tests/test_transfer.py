@@ -138,3 +138,27 @@ def test_values_outside_the_control_points_are_refused():
         with pytest.raises(Exception, match="outside the transfer function's control points"):
             method(jnp.asarray([0.0, 0.5, 255.0]))
     np.testing.assert_allclose(tf.opacity(jnp.asarray([0.0, 1.0])), [0.0, 0.5])  # ends inclusive
+
+
+def test_a_negative_or_non_finite_step_is_refused():
+    tf = _tf()
+    x = jnp.asarray([0.25, 0.5])
+    np.testing.assert_array_equal(tf.opacity(x, step=0.0), [0.0, 0.0])  # no length, no opacity
+    for step in (-1.0, jnp.nan, jnp.inf):
+        for method in (tf.opacity, tf):
+            with pytest.raises(ValueError, match="`step` must be a finite segment length"):
+                method(x, step=step)
+        with pytest.raises(Exception, match="`step` must be a finite segment length"):
+            jax.block_until_ready(jax.jit(lambda s: tf.opacity(x, step=s))(step))
+
+
+def test_float32_volumes_are_classified_in_float32_whatever_the_control_values_dtype():
+    # float32(0.3) > 0.3 and float32(0.4) > 0.4 in float64: the range check and the
+    # interval ends compare in the volume's dtype, as the interpolation does
+    tf = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (0.3, 1, 1, 1, 0.5)])
+    assert tf.points.dtype == jnp.float64
+    np.testing.assert_allclose(tf.opacity(jnp.asarray([0.0, 0.3], jnp.float32)), [0.0, 0.5])
+    wide = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (1.0, 1, 1, 1, 1.0)])
+    feature = IntervalFeature(0.2, 0.4)
+    for dtype in (jnp.float32, jnp.float64):
+        assert float(feature.opacity(jnp.asarray([0.4], dtype), wide)[0]) == pytest.approx(0.4)

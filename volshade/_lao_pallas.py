@@ -71,6 +71,7 @@ from .lao import (
     _chunking,
     _corner_slopes,
     _corner_weights,
+    _lerp_corners,
     _reverse_step,
 )
 
@@ -202,10 +203,6 @@ def _blend(weights, windows):
     return value
 
 
-def _weights(frac) -> list:
-    return [weight for _, weight in _corner_weights(frac)]
-
-
 def _origin(tile):
     return [pl.program_id(ax) * tile[ax] for ax in range(3)]
 
@@ -232,7 +229,7 @@ def _forward_kernel(params_ref, active_ref, source_ref, out_ref, *, pad, tile, s
             # H_i = H_{i+1} + 1 - alpha'_i H_{i+1}, H_{M-1} = 1, occ_l = M - H_0; summing
             # the T_i instead would lose float32 precision where they are all near 1
             step, frac, shift = _position(radius, offset, samples, samples - 2 - i, direction)
-            alpha = _blend(_weights(frac), _windows(source_ref, origin, pad, tile, shift))
+            alpha = _lerp_corners(frac, _windows(source_ref, origin, pad, tile, shift))
             return (horner + 1) - _opacity(alpha, step, correction) * horner
 
         horner = lax.fori_loop(0, samples - 1, sample_body, jnp.ones(tile, dtype))
@@ -312,7 +309,7 @@ def _chunk_starts_kernel(params_ref, source_ref, starts_ref, occ_ref, *, pad, ti
             index = k * chunk + j
             valid = (index < samples - 1).astype(dtype)
             step, frac, shift = _position(radius, offset, samples, index, direction)
-            alpha = _blend(_weights(frac), _windows(source_ref, origin, pad, tile, shift))
+            alpha = _lerp_corners(frac, _windows(source_ref, origin, pad, tile, shift))
             transmittance = transmittance * (1 - valid * _opacity(alpha, step, correction))
             return transmittance, occlusion + valid * (1 - transmittance)
 
@@ -342,7 +339,7 @@ def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, starts_ref, suff
         valid = (index < samples - 1).astype(dtype)
         step, frac, shift = _position(radius, offset, samples, index, direction)
         windows = _windows(source_ref, origin, pad, tile, shift)
-        alpha = _blend(_weights(frac), windows)
+        alpha = _lerp_corners(frac, windows)
         slope = _blend(_corner_slopes(frac, direction), windows)
         kept.append((transmittance, alpha, slope, valid, step, index))
         transmittance = transmittance * (1 - valid * _opacity(alpha, step, correction))

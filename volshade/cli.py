@@ -140,6 +140,7 @@ def render_command(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         image = jax.block_until_ready(eqx.filter_jit(render)(scene, cam))
         bar.update()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     save_png(args.out, image)
     print(f"volshade render: {args.volume} {tuple(vol.shape)} -> {args.out} "
           f"in {time.perf_counter() - t0:.1f}s")
@@ -161,8 +162,9 @@ def _parser() -> argparse.ArgumentParser:
     p_render.add_argument("--out", type=pathlib.Path, required=True)
     p_render.add_argument("--preset", default="grey", help=f"one of {', '.join(transfer.PRESETS)}")
     p_render.add_argument("--shading", default="phong", choices=list(SHADERS))
+    # "volume" needs a volume and "feature_ao" its features: neither fits on a command line
     p_render.add_argument("--ambient", default="none",
-                          choices=[a for a in AMBIENT if a != "volume"])
+                          choices=[a for a in AMBIENT if a not in ("volume", "feature_ao")])
     p_render.add_argument("--azimuth", type=float, default=30.0)
     p_render.add_argument("--elevation", type=float, default=20.0)
     p_render.add_argument("--distance", type=float, default=2.5)

@@ -264,6 +264,9 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
     """
     where = "volshade.affected_mask"
     clip = _clip(clip, where)
+    radius = _checks.scalar(radius, "radius", where)
+    radius = _checks.refuse(radius, [(~(jnp.isfinite(radius) & (radius > 0)),
+                                      "`radius` must be a finite number > 0 (voxels).")], where)
     return _within_reach(_voxel_distances(_shape_of(shape, where), clip), radius, clip)
 
 

@@ -176,8 +176,11 @@ def _from_bounded(x: Array, bounds: Bounds, path: str) -> Array:
     if known is not None and (low is not None and np.any(known <= low)
                               or high is not None and np.any(known >= high)):
         raise ValueError(f"{_WHERE}: the initial value of {path!r} ({known}) must lie "
-                         f"strictly inside its bounds ({low}, {high}); start from a value "
-                         f"inside or widen the bounds.")
+                         f"strictly inside its bounds ({low}, {high}): a logistic or "
+                         f"softplus reaches a bound only at infinity. Start from values "
+                         f"inside (e.g. move opacities of exactly 0 or 1 to 1e-3 or "
+                         f"1 - 1e-3 with `eqx.tree_at`); widen the bounds only where the "
+                         f"scene accepts the values beyond them.")
     if low is not None and high is not None:
         u = jnp.log(x - low) - jnp.log(high - x)  # accurate near either bound
     elif low is not None:
@@ -259,6 +262,12 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
         counted="weights")
     views = []
     for cam, tgt, w in zip(cameras, targets, weight_list, strict=True):
+        if jnp.issubdtype(jnp.result_type(tgt), jnp.integer):
+            # an image read from a file: 0-255 against renders in [0, 1] would fit nonsense
+            raise TypeError(f"{_WHERE}: `target` has the integer dtype "
+                            f"{jnp.result_type(tgt)} (an image read from a file?); renders "
+                            f"are floats in [0, 1]: convert it, e.g. with "
+                            f"`skimage.util.img_as_float(target)`.")
         tgt = _checks.as_float_array(tgt, "target", _WHERE)
         shape = (*cam.image_shape, 4)
         if tgt.shape not in (shape, shape[:2] + (3,)):
@@ -339,8 +348,11 @@ class _Problem(eqx.Module):
                     for t, w in zip(self.targets, self.weights, strict=True))
         scale = 1 / jnp.sqrt(total)
         out = []
-        for cam, tgt, w in zip(self.cameras, self.targets, self.weights, strict=True):
-            diff = render(fitted, cam)[..., : tgt.shape[-1]] - tgt
+        # one render call for all views: the ambient volume and the rest of what does not
+        # depend on the view is computed once, not once per camera
+        images = render(fitted, list(self.cameras))
+        for image, tgt, w in zip(images, self.targets, self.weights, strict=True):
+            diff = image[..., : tgt.shape[-1]] - tgt
             out.append(scale * (diff if w is None else jnp.sqrt(w) * diff))
         return out
 

@@ -101,6 +101,24 @@ class Importance(eqx.Module):
                 raise ValueError(f"volshade.Importance: `{name}` must be a scalar, got shape "
                                  f"{jnp.shape(value)}; for per-ray global weights pass "
                                  f"`global_weight=` to `sample_importance`.")
+        # traced values (a fit, jit) are checked by the renderer, with checked()
+        _checks.refuse(self, self._problems(), "volshade.Importance", traced=False)
+
+    def _problems(self) -> list[tuple[Array, str]]:
+        """Shape parameters outside their domain: exponents must be positive (0^p is 0
+        only for p > 0), a negative darkening brightens the silhouettes without bound,
+        and smoothstep needs its start below its end."""
+        exponents = [(~(getattr(self, name) > 0), f"`{name}` must be > 0.") for name in
+                     ("silhouette_exponent", "specular_exponent", "diffuse_exponent",
+                      "gradient_exponent")]
+        return [*exponents,
+                (~(self.darkening >= 0), "`darkening` must be >= 0 (0: no darkening)."),
+                (~(self.silhouette_start < self.silhouette_end),
+                 "`silhouette_start` must be < `silhouette_end` (the smoothstep's edges).")]
+
+    def checked(self) -> "Importance":
+        """These weights, refused at run time where traced values are out of range."""
+        return _checks.refuse(self, self._problems(), "volshade.Importance")
 
     def background_importance(self, global_weight: ArrayLike | None = None) -> Array:
         r"""Importance of the background layer, $I_{bg} = W_{global} W_{bg}$ (sec. IV-C).
@@ -253,7 +271,8 @@ def sample_importance(
     scalars = {"intensity": intensity, "extinction": extinction,
                "gradient_magnitude": gradient_magnitude, "optical_depth": optical_depth}
     vectors = {"normal": normal, "view": view, "light": light}
-    return _sample_importance(params, scalars, vectors, global_weight, check_finite=True)
+    return _sample_importance(params.checked(), scalars, vectors, global_weight,
+                              check_finite=True)
 
 
 def _sample_importance(params, scalars, vectors, global_weight, *, check_finite: bool):
@@ -264,7 +283,15 @@ def _sample_importance(params, scalars, vectors, global_weight, *, check_finite:
 
     def convert(v, k):
         v = _checks.as_float_array(v, k, where)
-        return _checks.finite(v, k, where) if check_finite else v
+        if not check_finite:
+            return v
+        v = _checks.finite(v, k, where)
+        if k in ("extinction", "optical_depth"):  # the measures would clip them
+            return _checks.refuse(v, [(jnp.any(v < 0), f"`{k}` must be >= 0.")], where)
+        if k == "gradient_magnitude":
+            return _checks.in_unit_range(v, k, where, hint="(normalise it by the volume's "
+                                         "maximum: normalized_gradient_magnitude)")
+        return v
 
     scalars = {k: convert(v, k) for k, v in scalars.items() if v is not None}
     vectors = {k: convert(v, k) for k, v in vectors.items() if v is not None}
@@ -277,6 +304,8 @@ def _sample_importance(params, scalars, vectors, global_weight, *, check_finite:
     shapes = [v.shape for v in scalars.values()] + [v.shape[:-1] for v in vectors.values()]
     if global_weight is not None:
         global_weight = _checks.as_float_array(global_weight, "global_weight", where)
+        if check_finite:
+            global_weight = _checks.finite(global_weight, "global_weight", where)
         shapes.append(global_weight.shape)
     try:
         batch = jnp.broadcast_shapes(*shapes)
@@ -414,8 +443,9 @@ def focus_weights(
     radius = _checks.as_float_array(radius, "radius", where)
     if radius.ndim != 0:
         raise ValueError(f"{where}: `radius` must be a scalar (pixels), got shape {radius.shape}.")
-    inside = _checks.as_float_array(inside, "inside", where)
-    outside = _checks.as_float_array(outside, "outside", where)
+    inside = _checks.finite(_checks.as_float_array(inside, "inside", where), "inside", where)
+    outside = _checks.finite(_checks.as_float_array(outside, "outside", where), "outside",
+                             where)
     if dtype is None:
         dtype = jnp.result_type(center, radius, inside, outside)
     radius = eqx.error_if(radius.astype(dtype), ~(radius > 0) | ~jnp.isfinite(radius),
@@ -450,6 +480,9 @@ class Focus(eqx.Module):
         if jnp.shape(self.center) != (2,):
             raise ValueError(f"volshade.Focus: `center` must be (row, column) fractions, "
                              f"got shape {jnp.shape(self.center)}.")
+        _checks.refuse(self, [(~(self.radius > 0), "`radius` must be > 0 (a fraction of the "
+                                                   "image height).")],
+                       "volshade.Focus", traced=False)  # traced: by focus_weights, in pixels
 
     def weights(self, image_shape: tuple[int, int]) -> Float[Array, "H W"]:
         """Per-ray weights for an image of ``image_shape`` (:func:`focus_weights`)."""

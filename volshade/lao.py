@@ -124,14 +124,22 @@ def _corner_slices(source: Array, pad: tuple[int, int, int], shape: tuple[int, i
     return offset - floor, n, slices
 
 
+def _lerp_corners(frac, values: list) -> Array:
+    """The trilinear blend of the eight corner ``values`` (in ``_CORNERS`` order) as seven
+    nested lerps ``a + f (b - a)``, which is exact wherever the corners are equal: an
+    opaque neighbourhood blends to exactly 1. The sum of the eight weighted corners can
+    round a few ulps below 1 there, where the opacity correction's slope
+    $r (1 - \alpha)^{r - 1}$ (for $r < 1$) would be about 1e8 in float64."""
+    for ax in (2, 1, 0):  # _CORNERS is row-major: neighbours differ in the last axis first
+        values = [a + frac[ax] * (b - a) for a, b in zip(values[0::2], values[1::2],
+                                                           strict=True)]
+    return values[0]
+
+
 def _trilinear_shifted(source, pad, shape, offset) -> Array:
     """``alpha(x + offset)`` for every voxel ``x`` of the window: 8 fused shifted reads."""
     frac, _, slices = _corner_slices(source, pad, shape, offset)
-    value = None
-    for corner, weight in _corner_weights(frac):
-        term = weight * slices[corner]
-        value = term if value is None else value + term
-    return value
+    return _lerp_corners(frac, [slices[c] for c in _CORNERS])
 
 
 def _corner_slopes(frac, direction) -> list:
@@ -156,13 +164,11 @@ def _trilinear_shifted_with_slope(source, pad, shape, offset, direction):
     Both blend the same eight shifted windows, so XLA fuses them into one pass.
     """
     frac, _, slices = _corner_slices(source, pad, shape, offset)
-    value = slope = None
-    for (corner, weight), d_weight in zip(_corner_weights(frac),
-                                          _corner_slopes(frac, direction), strict=True):
-        v, d = weight * slices[corner], d_weight * slices[corner]
-        value = v if value is None else value + v
+    slope = None
+    for corner, d_weight in zip(_CORNERS, _corner_slopes(frac, direction), strict=True):
+        d = d_weight * slices[corner]
         slope = d if slope is None else slope + d
-    return value, slope
+    return _lerp_corners(frac, [slices[c] for c in _CORNERS]), slope
 
 
 def _add_trilinear_shifted_adjoint(accumulator, cotangent, pad, offset) -> Array:
@@ -847,6 +853,12 @@ class LocalAmbientOcclusion(eqx.Module):
         _checks.refuse(self.radius, [(~(jnp.isfinite(self.radius) & (self.radius > 0)),
                                       f"`radius` must be a finite number > 0 (voxels), got "
                                       f"{radius!r}.")], where, traced=False)
+        _checks.refuse(self.offset, [
+            (~(jnp.isfinite(self.offset) & (self.offset >= 0)),
+             f"`offset` must be a finite number >= 0 (voxels), got {offset!r}."),
+            (~(self.radius > self.offset),
+             f"`radius` ({radius!r}) must be > `offset` ({offset!r}); increase the radius "
+             f"or lower the offset (default 1 voxel).")], where, traced=False)
         if isinstance(directions, int | np.integer) and not isinstance(directions, bool):
             directions = _directions.fibonacci(int(directions))
         self.directions = jnp.asarray(directions)

@@ -14,9 +14,15 @@ segment's length (:meth:`volshade.TransferFunction.opacity`).
 The march is a ``lax.scan`` over samples carrying all pixels at once; its
 body is rematerialised in reverse mode (``jax.checkpoint``), so memory for
 gradients is one compositing state per sample, not every intermediate.
+
+:func:`march` is :func:`medium` (the checks and the volumes every view shares:
+the gradient volume, the ambient and opacity-scale volumes) followed by
+:func:`march_view` (one camera's rays), so that several views of one scene
+(:func:`volshade.render` with a sequence of cameras) share that work.
 """
 
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -27,11 +33,11 @@ from . import _checks
 from ._numerics import correct_opacity, log1m, tiny
 from ._types import Array, Float
 from .camera import Camera, box_half_extent, intersect_box
-from .composition import COMPOSITORS, Sample
+from .composition import COMPOSITORS, Compositor, Sample
 from .gradient import regression_gradient
 from .importance import Importance, _sample_importance, normalized_gradient_magnitude
 from .sampling import trilinear
-from .shading import SHADERS, Phong
+from .shading import SHADERS, Phong, Shader
 from .transfer import TransferFunction
 
 
@@ -99,6 +105,39 @@ def march(
             ``opacity_scale``, or transfer-function control values out of order or
             outside [0, 1] (raised when the data is seen).
     """
+    shared = medium(volume, transfer, spacing=spacing, step=step, shading=shading,
+                    phong=phong, ambient=ambient, composition=composition,
+                    background=background, opacity_scale=opacity_scale,
+                    importance=importance)
+    return march_view(shared, camera, focus)
+
+
+class Medium(NamedTuple):
+    """What every view of a render shares: the checked volume and transfer function,
+    the shading and compositing choices, the ambient and opacity-scale volumes and the
+    gradient volume (and its normalised magnitude, for importance compositing)."""
+
+    volume: Array
+    transfer: TransferFunction
+    spacing: tuple[float, float, float]
+    step: float
+    shader: Shader
+    compositor: Compositor
+    phong: Phong
+    ambient: Array | None
+    opacity_scale: Array | None
+    importance: Importance | None
+    background: Array
+    gradient: Array | None
+    magnitude: Array | None
+
+
+def medium(
+    volume, transfer, *, spacing, step, shading, phong, ambient, composition, background,
+    opacity_scale, importance,
+) -> Medium:
+    """The view-independent part of :func:`march` (same arguments): its checks, and
+    the gradient volume when the shading or the compositing needs it."""
     where = "volshade.render"
     volume = _checks.at_least_float32(_checks.as_float_array(volume, "volume", where))
     _checks.check_ndim(volume, 3, "volume", where, "(D, H, W)")  # finite: with the transfer
@@ -131,9 +170,28 @@ def march(
         raise ValueError(f"{where}: `background` must be an RGB triple, shape (3,), got "
                          f"{background.shape}.")
     background = _checks.finite(background, "background", where)
-    phong = Phong() if phong is None else phong
     measured = composition == "importance"
-    importance = Importance() if importance is None else importance
+    gradient = regression_gradient(volume, spacing=spacing, size=3) \
+        if shader.needs_gradient or measured else None
+    return Medium(
+        volume=volume, transfer=transfer, spacing=spacing, step=step, shader=shader,
+        compositor=comp, phong=Phong() if phong is None else phong.checked(), ambient=ambient,
+        opacity_scale=opacity_scale,
+        importance=(Importance() if importance is None else importance.checked())
+        if measured else None,
+        background=background, gradient=gradient,
+        magnitude=normalized_gradient_magnitude(gradient) if measured else None)
+
+
+def march_view(medium: Medium, camera: Camera, focus: Array | None = None
+               ) -> Float[Array, "H W 4"]:
+    """The per-view part of :func:`march`: ``camera``'s rays through ``medium``, with
+    optional ``(H, W)`` ``focus`` weights; returns the ``(H, W, 4)`` image."""
+    where = "volshade.render"
+    volume, transfer, spacing, comp = medium.volume, medium.transfer, medium.spacing, \
+        medium.compositor
+    dtype = volume.dtype
+    measured = medium.importance is not None
     if focus is not None:
         focus = _checks.finite(_checks.as_float_array(focus, "focus", where).astype(dtype),
                                "focus", where)
@@ -147,16 +205,14 @@ def march(
     half_extent = half_extent.astype(dtype)
     origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())
     batch = origins.shape[:-1]
-    bg = jnp.broadcast_to(background, (*batch, 3))
+    bg = jnp.broadcast_to(medium.background, (*batch, 3))
     t_near, t_far = intersect_box(origins, directions, half_extent)
     hit = t_far > t_near
     length = jnp.where(hit, t_far - t_near, 0)
     t_near = jnp.where(hit, t_near, 0)  # a missed ray may carry t = +-max: keep positions finite
-    dt = jnp.asarray(step / scale, dtype)
+    dt = jnp.asarray(medium.step / scale, dtype)
     to_index = jnp.asarray(scale / np.asarray(spacing), dtype)
-    gradient = regression_gradient(volume, spacing=spacing, size=3) \
-        if shader.needs_gradient or measured else None
-    magnitude = normalized_gradient_magnitude(gradient) if measured else None
+    ambient, opacity_scale, gradient = medium.ambient, medium.opacity_scale, medium.gradient
     eye_dir = -directions
     # Optical depth of an opaque sample is infinite; capping it at -log(tiny) keeps the
     # importance measures finite (a weight of 0 times inf would be NaN). Transmittance
@@ -177,14 +233,14 @@ def march(
         amb = jnp.ones((*batch, 1), dtype) if ambient is None else \
             trilinear(ambient, index, mode="nearest").reshape(*batch, -1)
         grad = None if gradient is None else trilinear(gradient, index, mode="nearest")
-        shaded = shader.fn(color, grad, eye_dir, eye_dir, amb, phong)
+        shaded = medium.shader.fn(color, grad, eye_dir, eye_dir, amb, medium.phong)
         sample_imp = None
         if measured:
             tau = jnp.minimum(-log1m(alpha0), max_depth) / transfer.step0
             sample_imp, darkening = _sample_importance(
-                importance,
+                medium.importance,
                 {"intensity": value, "extinction": tau, "optical_depth": depth,
-                 "gradient_magnitude": trilinear(magnitude, index, mode="nearest")},
+                 "gradient_magnitude": trilinear(medium.magnitude, index, mode="nearest")},
                 {"normal": -grad, "view": eye_dir, "light": eye_dir}, focus,
                 check_finite=False)
             shaded = shaded * darkening[..., None]
@@ -193,14 +249,15 @@ def march(
         return (state, depth), None
 
     carry = (comp.init(batch, dtype), jnp.zeros(batch, dtype))
-    steps = jnp.arange(n_samples(volume.shape, spacing, step), dtype=dtype)
+    steps = jnp.arange(n_samples(volume.shape, spacing, medium.step), dtype=dtype)
     (state, _), _ = jax.lax.scan(jax.checkpoint(body), carry, steps)
-    bg_importance = importance.background_importance(focus) if measured else 0
+    bg_importance = medium.importance.background_importance(focus) if measured else 0
     return comp.finish(state, bg, jnp.broadcast_to(jnp.asarray(bg_importance, dtype), batch))
 
 
 def save_png(path, image: Float[Array, "H W C"]) -> None:
-    """Write an ``(H, W, 3)`` or ``(H, W, 4)`` image in [0, 1] as an 8-bit RGB PNG.
+    """Write an ``(H, W, 3)`` or ``(H, W, 4)`` image in [0, 1] as an 8-bit RGB PNG, or an
+    ``(H, W)`` one (a slice of an ambient-occlusion volume) as an 8-bit grey PNG.
 
     Values above 1 (added-up highlights) are clipped to white when written;
     the alpha channel is dropped, since the background is already blended in.
@@ -208,9 +265,10 @@ def save_png(path, image: Float[Array, "H W C"]) -> None:
     from skimage import io, util
 
     img = np.asarray(image)
-    if img.ndim != 3 or img.shape[-1] not in (3, 4):
-        raise ValueError(f"volshade.save_png: `image` must be (H, W, 3) or (H, W, 4), "
-                         f"got {img.shape}.")
+    if not (img.ndim == 2 or img.ndim == 3 and img.shape[-1] in (3, 4)):
+        raise ValueError(f"volshade.save_png: `image` must be (H, W), (H, W, 3) or "
+                         f"(H, W, 4), got {img.shape}.")
     if not np.all(np.isfinite(img)):
         raise ValueError("volshade.save_png: `image` contains NaN or inf.")
-    io.imsave(str(path), util.img_as_ubyte(np.clip(img[..., :3], 0, 1)), check_contrast=False)
+    pixels = img if img.ndim == 2 else img[..., :3]
+    io.imsave(str(path), util.img_as_ubyte(np.clip(pixels, 0, 1)), check_contrast=False)

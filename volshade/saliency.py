@@ -396,8 +396,8 @@ def modulate_opacity(
 
     Raises:
         ValueError: shapes differ, ``boost_top`` outside (0, 1], non-scalar ``threshold``.
-        equinox.EquinoxRuntimeError: ``opacity`` outside [0, 1], NaN/inf in either
-            volume or in ``threshold`` (at run time).
+        equinox.EquinoxRuntimeError: ``opacity`` or ``saliency`` outside [0, 1], NaN/inf
+            in either volume or in ``threshold`` (at run time).
 
     Example:
         >>> a = jnp.full((1, 1, 3), 0.5)
@@ -407,7 +407,7 @@ def modulate_opacity(
     """
     where = "volshade.saliency.modulate_opacity"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
-    saliency = _checks.volume(saliency, "saliency", where).astype(opacity.dtype)
+    saliency = _checks.volume(saliency, "saliency", where, unit_range=True).astype(opacity.dtype)
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same shape, got "
                          f"{saliency.shape} and {opacity.shape}.")
@@ -465,8 +465,10 @@ class SaliencyModulation(eqx.Module):
 
     The scene's obscurance (grey, of the transfer-function opacity) gives the
     saliency (:func:`saliency`), and the renderer multiplies every sample's
-    opacity by :func:`opacity_factor` of it. ``threshold`` and ``d_max`` are
-    differentiable leaves; the rest is static.
+    opacity by :func:`opacity_factor` of it. ``threshold`` and ``d_max`` are array
+    leaves (changing them does not recompile); the rest is static. ``d_max`` gets a
+    gradient; ``threshold`` does not (the factor is a step at the threshold, so its
+    derivative there is 0 almost everywhere).
     """
 
     threshold: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.2)

@@ -11,7 +11,8 @@ recompiles.
 """
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -26,7 +27,7 @@ from .feature_ao import FeatureAmbientOcclusion
 from .importance import Focus, Importance
 from .lao import LocalAmbientOcclusion
 from .obscurance import ObscuranceParams
-from .render import march
+from .render import march_view, medium
 from .saliency import SaliencyModulation
 from .shading import SHADERS, Phong
 from .transfer import TransferFunction
@@ -192,6 +193,15 @@ class Scene(eqx.Module):
         _checks.option(self.composition, COMPOSITORS, "composition", _WHERE)
         if self.ambient == "volume" and self.ambient_volume is None:
             raise ValueError(f"{_WHERE}: ambient='volume' needs `ambient_volume`.")
+        # given but never used: a render without them would look as if they had no effect
+        if self.ambient != "volume" and self.ambient_volume is not None:
+            raise ValueError(f"{_WHERE}: `ambient_volume` is used only with "
+                             f"ambient='volume', got ambient={self.ambient!r}; set "
+                             f"ambient='volume' or leave `ambient_volume` out.")
+        if self.ambient != "feature_ao" and self.feature_ao is not None:
+            raise ValueError(f"{_WHERE}: `feature_ao` is used only with "
+                             f"ambient='feature_ao', got ambient={self.ambient!r}; set "
+                             f"ambient='feature_ao' or leave `feature_ao` out.")
         if self.ambient == "feature_ao" and not isinstance(self.feature_ao,
                                                            FeatureAmbientOcclusion):
             raise ValueError(f"{_WHERE}: ambient='feature_ao' needs `feature_ao=` a "
@@ -233,8 +243,8 @@ def _minus_inf_allowed(tree, prefix: str) -> set[str]:
             for path, node in nodes if declares(node) for field in node.may_be_minus_inf}
 
 
-def _finite_parameters(scene: Scene, camera: Camera) -> tuple[Scene, Camera]:
-    """Refuse NaN/inf in any floating-point leaf of the scene or camera (naming it), so a
+def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
+    """Refuse NaN/inf in any floating-point leaf of the scene or camera(s) (naming it), so a
     bad parameter raises instead of rendering a NaN image. The volume has its own check;
     leaves a module declares in ``may_be_minus_inf`` may also be -inf."""
 
@@ -261,26 +271,80 @@ def _finite_parameters(scene: Scene, camera: Camera) -> tuple[Scene, Camera]:
     return checked(scene, "scene"), checked(camera, "camera")
 
 
-def render(scene: Scene, camera: Camera) -> Float[Array, "H W 4"]:
+def _check_cameras(camera: Any) -> None:
+    if isinstance(camera, Camera):
+        return
+    if not isinstance(camera, list | tuple) or not camera:
+        raise TypeError(f"volshade.render: `camera` must be a volshade.Camera or a non-empty "
+                        f"list or tuple of them, got {camera!r:.80}.")
+    others = sorted({type(c).__name__ for c in camera if not isinstance(c, Camera)})
+    if others:
+        raise TypeError(f"volshade.render: every entry of `camera` must be a volshade.Camera, "
+                        f"got {', '.join(others)}.")
+
+
+def _each_view(view: Callable[[Camera], Array], cameras: list[Camera]) -> list[Array]:
+    """``view`` of each camera: one traced march for cameras of one structure (image
+    shape, projection and dtypes), mapped over their stacked values, so that many
+    views compile as fast as one; a march per camera otherwise."""
+    structure = {(jax.tree_util.tree_structure(c),
+                  tuple((x.shape, x.dtype) for x in jax.tree_util.tree_leaves(c)))
+                 for c in cameras}
+    if len(cameras) == 1 or len(structure) > 1:
+        return [view(c) for c in cameras]
+    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *cameras)
+    images = jax.lax.map(view, stacked)
+    return [images[i] for i in range(len(cameras))]
+
+
+def render(scene: Scene, camera: Camera | Sequence[Camera]
+           ) -> Float[Array, "H W 4"] | list[Float[Array, "H W 4"]]:
     """Render ``scene`` from ``camera``, computing only the effects the scene names.
 
+    Args:
+        scene: what to render.
+        camera: a :class:`~volshade.camera.Camera`, or a list or tuple of them. The
+            views of a sequence share everything that does not depend on the view,
+            computed once: the ambient volume (LAO, feature AO, obscurance), the
+            saliency modulation, the clip mask and the gradient volume. Cameras of
+            one image shape and projection are marched by one compiled loop
+            (``jax.lax.map``), so a turntable of many views compiles like one.
+
     Returns:
-        ``(H, W, 4)`` RGB (background blended in) and accumulated opacity.
+        ``(H, W, 4)`` RGB (background blended in) and accumulated opacity; for a
+        sequence of cameras, a list of those images, one per camera, in order.
+
+    Raises:
+        TypeError: ``camera`` is not a camera or a non-empty list or tuple of them.
+        ValueError / EquinoxRuntimeError: NaN or inf in a scene or camera parameter
+            (named), and the checks of the effects and of
+            :func:`~volshade.render.march`.
 
     Example:
         >>> scene = Scene(volume=vs.data.phantom("shells", shape=16),
         ...               transfer=vs.transfer.preset("shells"))
         >>> render(scene, Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))).shape
         (8, 8, 4)
+        >>> views = [Camera.orbit(azimuth=a, image_shape=(8, 8)) for a in (0, 90, 180)]
+        >>> [image.shape for image in render(scene, views)]
+        [(8, 8, 4), (8, 8, 4), (8, 8, 4)]
     """
+    _check_cameras(camera)
     scene, camera = _finite_parameters(scene, camera)
+    cameras = [camera] if isinstance(camera, Camera) else list(camera)
     ambient = AMBIENT[scene.ambient](scene)
     opacity_scale = MODULATION[scene.modulation](scene)
     kept = _kept(scene)
     if kept is not None:
         opacity_scale = kept if opacity_scale is None else opacity_scale * kept
-    focus = None if scene.focus is None else scene.focus.weights(camera.image_shape)
-    return march(scene.volume, scene.transfer, camera, spacing=scene.spacing, step=scene.step,
-                 shading=scene.shading, phong=scene.phong, ambient=ambient,
-                 opacity_scale=opacity_scale, composition=scene.composition,
-                 importance=scene.importance, focus=focus, background=scene.background)
+    shared = medium(scene.volume, scene.transfer, spacing=scene.spacing, step=scene.step,
+                    shading=scene.shading, phong=scene.phong, ambient=ambient,
+                    opacity_scale=opacity_scale, composition=scene.composition,
+                    importance=scene.importance, background=scene.background)
+
+    def view(cam: Camera) -> Array:
+        focus = None if scene.focus is None else scene.focus.weights(cam.image_shape)
+        return march_view(shared, cam, focus)
+
+    images = _each_view(view, cameras)
+    return images[0] if isinstance(camera, Camera) else images

@@ -46,16 +46,19 @@ class Phong(eqx.Module):
     shininess: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=24.0)
 
     def __check_init__(self):
-        where = "volshade.Phong"
-        # values are checked here when known (built eagerly; leaves may carry a batch
-        # axis for vmap); traced ones only for finiteness, by the renderer
-        for name in ("ambient", "diffuse", "specular", "shininess"):
-            value = getattr(self, name)
-            _checks.refuse(value, [(~(jnp.isfinite(value) & (value >= 0)),
-                                    f"`{name}` must be a finite number >= 0.")],
-                           where, traced=False)
-        _checks.refuse(self.shininess, [(~(self.shininess > 0), "`shininess` must be > 0.")],
-                       where, traced=False)
+        # checked here when known (built eagerly; leaves may carry a batch axis for
+        # vmap); traced values (a fit, jit) by the renderer, with checked()
+        _checks.refuse(self, self._problems(), "volshade.Phong", traced=False)
+
+    def _problems(self) -> list[tuple[Array, str]]:
+        problems = [(~(jnp.isfinite(getattr(self, name)) & (getattr(self, name) >= 0)),
+                     f"`{name}` must be a finite number >= 0.")
+                    for name in ("ambient", "diffuse", "specular", "shininess")]
+        return [*problems, (~(self.shininess > 0), "`shininess` must be > 0.")]
+
+    def checked(self) -> "Phong":
+        """These coefficients, refused at run time where traced values are out of range."""
+        return _checks.refuse(self, self._problems(), "volshade.Phong")
 
 
 def blinn_phong(

@@ -35,6 +35,16 @@ from ._types import Array, Float
 _WHERE = "volshade.TransferFunction"
 
 
+def _step(step: Any, where: str) -> Array | None:
+    """A segment length for opacity correction: finite and >= 0 mm (0: opacity 0)."""
+    if step is None:
+        return None
+    step = _checks.as_float_array(step, "step", where)
+    return _checks.refuse(step, [(~(jnp.isfinite(step) & (step >= 0)),
+                                  "`step` must be a finite segment length >= 0 mm (a "
+                                  "length of 0 has opacity 0).")], where)
+
+
 class TransferFunction(eqx.Module):
     """Piecewise-linear 1D transfer function (intensity -> RGB colour, opacity).
 
@@ -89,7 +99,9 @@ class TransferFunction(eqx.Module):
         (half precision as float32: ``jnp.interp`` refuses it)."""
         tf = _checks.refuse(self, self._problems(), _WHERE)
         volume = _checks.finite(_checks.at_least_float32(jnp.asarray(volume)), "volume", where)
-        outside = (jnp.min(volume) < tf.points[0]) | (jnp.max(volume) > tf.points[-1])
+        # in the volume's dtype, as _interp classifies: float32(0.3) > 0.3 in float64
+        points = tf.points.astype(volume.dtype)
+        outside = (jnp.min(volume) < points[0]) | (jnp.max(volume) > points[-1])
         # interpolation would classify all those values like the end points (a 0-255
         # volume through a [0, 1] transfer function renders as one solid blob)
         return tf, eqx.error_if(
@@ -146,10 +158,11 @@ class TransferFunction(eqx.Module):
         Raises:
             ValueError: NaN or inf in ``volume`` (interpolation would clamp an
                 infinite value to the last control point's opacity, silently), or
-                values outside ``[points[0], points[-1]]`` (the same clamp).
+                values outside ``[points[0], points[-1]]`` (the same clamp); a
+                negative or non-finite ``step``.
         """
         tf, volume = self._checked(volume, f"{_WHERE}.opacity")
-        return tf._opacity(volume, step)
+        return tf._opacity(volume, _step(step, f"{_WHERE}.opacity"))
 
     def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
         r"""Extinction $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
@@ -164,7 +177,7 @@ class TransferFunction(eqx.Module):
     def __call__(self, volume: Float[Array, "*shape"], *, step=None):
         """``(color, opacity)`` of each value; NaN or inf is refused."""
         tf, volume = self._checked(volume, f"{_WHERE}.__call__")
-        return tf._rgba(volume, step)
+        return tf._rgba(volume, _step(step, f"{_WHERE}.__call__"))
 
 
 class IntervalFeature(eqx.Module):
@@ -188,8 +201,10 @@ class IntervalFeature(eqx.Module):
         return self._select(volume, base.opacity(volume, step=step))
 
     def _select(self, volume: Array, base_opacity: Array) -> Array:
-        inside = (volume >= self.low) & (volume <= self.high)
-        return jnp.where(inside, base_opacity, 0)
+        # compared in the volume's dtype, as it is classified: a float32 volume of 0.4
+        # lies inside [0.2, 0.4] whatever the dtype the bounds were made in
+        low, high = self.low.astype(volume.dtype), self.high.astype(volume.dtype)
+        return jnp.where((volume >= low) & (volume <= high), base_opacity, 0)
 
 
 Feature = TransferFunction | IntervalFeature
@@ -313,7 +328,13 @@ def preset(name: str) -> TransferFunction:
     """A named transfer function from :data:`PRESETS`.
 
     ``"grey"``, ``"shells"`` (the shells phantom), ``"head"`` and ``"head_skull"``
-    (Colin27 T1; the latter with the skull band), ``"corner"`` (the corner phantom).
+    (Colin27 T1; the latter with the skull band), ``"corner"`` (the corner phantom's
+    labels: 0.5 green, 0.75 blue, 1.0 white). The corner phantom's walls are labels,
+    and the renderer classifies after interpolating: between air and the white wall
+    the values pass through the green and blue bands, so the white floor shows rings
+    of those colours. To render labels in their own colours, classify the walls first
+    (a white transfer function and the colours as an ambient volume, as
+    ``experiments/corner_colour_bleeding.py`` does).
 
     Raises:
         ValueError: unknown name (the message lists the valid ones).
