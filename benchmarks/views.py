@@ -13,7 +13,8 @@ can share):
   the same function rendering the list.
 
 Reported: medians, compile times apart, the ratios, and the largest difference
-between the images of the two ways (they are the same computation).
+between the images of the two ways (the same arithmetic, which XLA may order
+differently in the two programs: equal up to float32 rounding).
 """
 
 import equinox as eqx

@@ -79,7 +79,7 @@ cameras = [vs.Camera.orbit(azimuth=a, elevation=10, image_shape=IMAGE, distance=
            for a in AZIMUTHS]
 render = eqx.filter_jit(vs.render)
 truth = scene_with(TRUE)
-targets = [render(truth, c) for c in cameras]
+targets = render(truth, cameras)  # as the fit renders them: all views in one call
 for target in targets:
     assert np.asarray(target)[..., :3].std() > 0.05, "the target render is flat"
 print(f"Colin27 {head.shape} at {voxel:g} mm, {len(cameras)} {IMAGE} view(s)")
@@ -138,11 +138,11 @@ def image(x):
 
 exact, _ = fits["exact images"]
 from_noise, _ = fits["noisy images (sigma 0.02)"]
-starts = [render(start, c) for c in cameras]
+starts = render(start, cameras)
 columns = [("target", targets), ("start", starts),
-           ("fitted to the exact target", [render(exact.scene, c) for c in cameras]),
+           ("fitted to the exact target", render(exact.scene, cameras)),
            ("noisy target", noisy),
-           ("fitted to the noisy target", [render(from_noise.scene, c) for c in cameras])]
+           ("fitted to the noisy target", render(from_noise.scene, cameras))]
 fig = plt.figure(figsize=(3.0 * (len(columns) + 1.6), 3.1 * len(cameras) + 0.6))
 grid = fig.add_gridspec(len(cameras), len(columns) + 2)
 for row, azimuth in enumerate(AZIMUTHS):
@@ -183,7 +183,7 @@ psnr0, ssim0 = metrics(starts, targets)
 lines.append(f"| (start) | {START['lao.radius'] * voxel:.4f} | "
              f"{START['importance.intensity']:.4f} | | | | | {psnr0:.1f} dB / {ssim0:.3f} |")
 for name, (result, seconds) in fits.items():
-    psnr, ssim = metrics([render(result.scene, c) for c in cameras], targets)
+    psnr, ssim = metrics(render(result.scene, cameras), targets)
     lines.append(f"| {name} | {float(result.values['lao.radius']) * voxel:.4f} | "
                  f"{float(result.values['importance.intensity']):.4f} | {int(result.steps)} | "
                  f"{seconds:.1f} | {float(result.initial_loss):.3e} | {float(result.loss):.3e} "

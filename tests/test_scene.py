@@ -72,13 +72,17 @@ def test_several_views_share_what_does_not_depend_on_the_view(monkeypatch):
                   lao=LocalAmbientOcclusion(2.5, directions=6, samples=3),
                   composition="importance", importance=Importance(intensity=2.0),
                   focus=Focus(center=(0.4, 0.6), radius=0.3))
+    real_view = scene_module.march_view
+    monkeypatch.setattr(scene_module, "march_view",
+                        lambda *a: calls.append("view") or real_view(*a))
     alike = [Camera.orbit(azimuth=a, elevation=15.0, image_shape=(5, 4)) for a in (0, 70, 140)]
     mixed = [alike[0], Camera.orbit(azimuth=200.0, image_shape=(3, 6)),
              Camera.orbit(azimuth=250.0, image_shape=(5, 4), projection="orthographic")]
-    for cameras in (alike, tuple(mixed)):  # one mapped march; a march per camera
+    for cameras, views in ((alike, 1), (tuple(mixed), 3)):  # one mapped march; one each
         calls.clear()
         images = eqx.filter_jit(render)(scene, cameras)
-        assert sorted(calls) == ["gradient", "lao"]  # once, not once per camera
+        # the shared volumes once, not once per camera
+        assert sorted(calls) == ["gradient", "lao", *["view"] * views]
         assert isinstance(images, list) and len(images) == 3
         for image, cam in zip(images, cameras, strict=True):
             np.testing.assert_allclose(image, eqx.filter_jit(render)(scene, cam), atol=1e-12)
@@ -95,6 +99,23 @@ def test_several_views_share_what_does_not_depend_on_the_view(monkeypatch):
     for bad in ([], (), [alike[0], "front"], iter(alike), None):
         with pytest.raises(TypeError, match="`camera` must be a volshade.Camera|every entry"):
             render(scene, bad)
+    blind = eqx.tree_at(lambda c: c.target, alike[1], alike[1].eye)  # eye == target
+    with pytest.raises(ValueError, match=r"`camera\[1\]`: .*`eye` and `target` must differ"):
+        render(scene, [alike[0], blind])
+
+
+def test_leaves_set_to_python_floats_render():
+    # eqx.tree_at may put a Python float where a constructor would put an array
+    scene = Scene(volume=_volume(), transfer=preset("grey"), shading="phong",
+                  composition="importance", importance=Importance(silhouette=1.0))
+    cam = Camera.orbit(image_shape=(4, 4))
+    want = render(scene, cam)
+    floats = eqx.tree_at(lambda s: (s.phong.shininess, s.importance.darkening), scene,
+                         (float(scene.phong.shininess), float(scene.importance.darkening)))
+    wide = eqx.tree_at(lambda c: c.fov, cam, float(cam.fov))
+    np.testing.assert_allclose(render(floats, wide), want, atol=1e-12)
+    for image in render(floats, [wide, cam]):
+        np.testing.assert_allclose(image, want, atol=1e-12)
 
 
 def test_scene_is_a_pytree_for_jit_vmap_grad():

@@ -68,11 +68,12 @@ from ._numerics import correct_opacity
 from .lao import (
     _CORNERS,
     _active_bricks,
+    _blend_corners,
     _chunking,
     _corner_slopes,
     _corner_weights,
-    _lerp_corners,
     _reverse_step,
+    _weighted_sum,
 )
 
 
@@ -196,13 +197,6 @@ def _windows(ref, origin, pad, tile, shift):
     return out
 
 
-def _blend(weights, windows):
-    value = None
-    for w, v in zip(weights, windows, strict=True):
-        value = w * v if value is None else value + w * v
-    return value
-
-
 def _origin(tile):
     return [pl.program_id(ax) * tile[ax] for ax in range(3)]
 
@@ -229,7 +223,8 @@ def _forward_kernel(params_ref, active_ref, source_ref, out_ref, *, pad, tile, s
             # H_i = H_{i+1} + 1 - alpha'_i H_{i+1}, H_{M-1} = 1, occ_l = M - H_0; summing
             # the T_i instead would lose float32 precision where they are all near 1
             step, frac, shift = _position(radius, offset, samples, samples - 2 - i, direction)
-            alpha = _lerp_corners(frac, _windows(source_ref, origin, pad, tile, shift))
+            alpha = _blend_corners(frac, _windows(source_ref, origin, pad, tile, shift),
+                                   exact=correction)
             return (horner + 1) - _opacity(alpha, step, correction) * horner
 
         horner = lax.fori_loop(0, samples - 1, sample_body, jnp.ones(tile, dtype))
@@ -309,7 +304,8 @@ def _chunk_starts_kernel(params_ref, source_ref, starts_ref, occ_ref, *, pad, ti
             index = k * chunk + j
             valid = (index < samples - 1).astype(dtype)
             step, frac, shift = _position(radius, offset, samples, index, direction)
-            alpha = _lerp_corners(frac, _windows(source_ref, origin, pad, tile, shift))
+            alpha = _blend_corners(frac, _windows(source_ref, origin, pad, tile, shift),
+                                   exact=correction)
             transmittance = transmittance * (1 - valid * _opacity(alpha, step, correction))
             return transmittance, occlusion + valid * (1 - transmittance)
 
@@ -339,8 +335,8 @@ def _chunk_cotangents_kernel(params_ref, index_ref, source_ref, starts_ref, suff
         valid = (index < samples - 1).astype(dtype)
         step, frac, shift = _position(radius, offset, samples, index, direction)
         windows = _windows(source_ref, origin, pad, tile, shift)
-        alpha = _lerp_corners(frac, windows)
-        slope = _blend(_corner_slopes(frac, direction), windows)
+        alpha = _blend_corners(frac, windows, exact=correction)
+        slope = _weighted_sum(_corner_slopes(frac, direction), windows)
         kept.append((transmittance, alpha, slope, valid, step, index))
         transmittance = transmittance * (1 - valid * _opacity(alpha, step, correction))
 

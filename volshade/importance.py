@@ -108,12 +108,14 @@ class Importance(eqx.Module):
         """Shape parameters outside their domain: exponents must be positive (0^p is 0
         only for p > 0), a negative darkening brightens the silhouettes without bound,
         and smoothstep needs its start below its end."""
-        exponents = [(~(getattr(self, name) > 0), f"`{name}` must be > 0.") for name in
+        # as arrays: a leaf set to a Python float (eqx.tree_at) would make `~` bitwise
+        value = {name: jnp.asarray(v) for name, v in _leaves(self).items()}
+        exponents = [(~(value[name] > 0), f"`{name}` must be > 0.") for name in
                      ("silhouette_exponent", "specular_exponent", "diffuse_exponent",
                       "gradient_exponent")]
         return [*exponents,
-                (~(self.darkening >= 0), "`darkening` must be >= 0 (0: no darkening)."),
-                (~(self.silhouette_start < self.silhouette_end),
+                (~(value["darkening"] >= 0), "`darkening` must be >= 0 (0: no darkening)."),
+                (~(value["silhouette_start"] < value["silhouette_end"]),
                  "`silhouette_start` must be < `silhouette_end` (the smoothstep's edges).")]
 
     def checked(self) -> "Importance":

@@ -78,7 +78,7 @@ def march(
         composition: compositor name (see :data:`volshade.composition.COMPOSITORS`).
         background: RGB colour behind the volume.
         opacity_scale: optional ``(D, H, W)`` factor $f \\ge 0$, sampled trilinearly;
-            each sample's reference opacity becomes $\\min(1, f \alpha_0)$ before
+            each sample's reference opacity becomes $\\min(1, f \\alpha_0)$ before
             the step correction (saliency-driven modulation).
         importance: weights of the importance measures for
             ``composition="importance"`` (default :class:`~volshade.importance.Importance`,
@@ -102,8 +102,9 @@ def march(
     Raises:
         ValueError / TypeError: bad shapes, dtypes, options or sizes; NaN or inf
             in ``volume``, ``ambient`` or ``background``, a negative
-            ``opacity_scale``, or transfer-function control values out of order or
-            outside [0, 1] (raised when the data is seen).
+            ``opacity_scale``, transfer-function control values out of order or
+            outside [0, 1], or ``phong`` or ``importance`` values outside their
+            domains (raised when the data is seen: at run time for traced values).
     """
     shared = medium(volume, transfer, spacing=spacing, step=step, shading=shading,
                     phong=phong, ambient=ambient, composition=composition,
@@ -183,15 +184,16 @@ def medium(
         magnitude=normalized_gradient_magnitude(gradient) if measured else None)
 
 
-def march_view(medium: Medium, camera: Camera, focus: Array | None = None
+def march_view(shared: Medium, camera: Camera, focus: Array | None = None
                ) -> Float[Array, "H W 4"]:
-    """The per-view part of :func:`march`: ``camera``'s rays through ``medium``, with
-    optional ``(H, W)`` ``focus`` weights; returns the ``(H, W, 4)`` image."""
+    """The per-view part of :func:`march`: ``camera``'s rays through ``shared`` (what
+    :func:`medium` returns), with optional ``(H, W)`` ``focus`` weights; returns the
+    ``(H, W, 4)`` image."""
     where = "volshade.render"
-    volume, transfer, spacing, comp = medium.volume, medium.transfer, medium.spacing, \
-        medium.compositor
+    volume, transfer, spacing, comp = shared.volume, shared.transfer, shared.spacing, \
+        shared.compositor
     dtype = volume.dtype
-    measured = medium.importance is not None
+    measured = shared.importance is not None
     if focus is not None:
         focus = _checks.finite(_checks.as_float_array(focus, "focus", where).astype(dtype),
                                "focus", where)
@@ -205,14 +207,14 @@ def march_view(medium: Medium, camera: Camera, focus: Array | None = None
     half_extent = half_extent.astype(dtype)
     origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())
     batch = origins.shape[:-1]
-    bg = jnp.broadcast_to(medium.background, (*batch, 3))
+    bg = jnp.broadcast_to(shared.background, (*batch, 3))
     t_near, t_far = intersect_box(origins, directions, half_extent)
     hit = t_far > t_near
     length = jnp.where(hit, t_far - t_near, 0)
     t_near = jnp.where(hit, t_near, 0)  # a missed ray may carry t = +-max: keep positions finite
-    dt = jnp.asarray(medium.step / scale, dtype)
+    dt = jnp.asarray(shared.step / scale, dtype)
     to_index = jnp.asarray(scale / np.asarray(spacing), dtype)
-    ambient, opacity_scale, gradient = medium.ambient, medium.opacity_scale, medium.gradient
+    ambient, opacity_scale, gradient = shared.ambient, shared.opacity_scale, shared.gradient
     eye_dir = -directions
     # Optical depth of an opaque sample is infinite; capping it at -log(tiny) keeps the
     # importance measures finite (a weight of 0 times inf would be NaN). Transmittance
@@ -233,14 +235,14 @@ def march_view(medium: Medium, camera: Camera, focus: Array | None = None
         amb = jnp.ones((*batch, 1), dtype) if ambient is None else \
             trilinear(ambient, index, mode="nearest").reshape(*batch, -1)
         grad = None if gradient is None else trilinear(gradient, index, mode="nearest")
-        shaded = medium.shader.fn(color, grad, eye_dir, eye_dir, amb, medium.phong)
+        shaded = shared.shader.fn(color, grad, eye_dir, eye_dir, amb, shared.phong)
         sample_imp = None
         if measured:
             tau = jnp.minimum(-log1m(alpha0), max_depth) / transfer.step0
             sample_imp, darkening = _sample_importance(
-                medium.importance,
+                shared.importance,
                 {"intensity": value, "extinction": tau, "optical_depth": depth,
-                 "gradient_magnitude": trilinear(medium.magnitude, index, mode="nearest")},
+                 "gradient_magnitude": trilinear(shared.magnitude, index, mode="nearest")},
                 {"normal": -grad, "view": eye_dir, "light": eye_dir}, focus,
                 check_finite=False)
             shaded = shaded * darkening[..., None]
@@ -249,9 +251,9 @@ def march_view(medium: Medium, camera: Camera, focus: Array | None = None
         return (state, depth), None
 
     carry = (comp.init(batch, dtype), jnp.zeros(batch, dtype))
-    steps = jnp.arange(n_samples(volume.shape, spacing, medium.step), dtype=dtype)
+    steps = jnp.arange(n_samples(volume.shape, spacing, shared.step), dtype=dtype)
     (state, _), _ = jax.lax.scan(jax.checkpoint(body), carry, steps)
-    bg_importance = medium.importance.background_importance(focus) if measured else 0
+    bg_importance = shared.importance.background_importance(focus) if measured else 0
     return comp.finish(state, bg, jnp.broadcast_to(jnp.asarray(bg_importance, dtype), batch))
 
 

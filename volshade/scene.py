@@ -11,7 +11,7 @@ recompiles.
 """
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -272,6 +272,7 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
 
 
 def _check_cameras(camera: Any) -> None:
+    """Refuse anything but a camera or a non-empty list or tuple of cameras."""
     if isinstance(camera, Camera):
         return
     if not isinstance(camera, list | tuple) or not camera:
@@ -287,17 +288,27 @@ def _each_view(view: Callable[[Camera], Array], cameras: list[Camera]) -> list[A
     """``view`` of each camera: one traced march for cameras of one structure (image
     shape, projection and dtypes), mapped over their stacked values, so that many
     views compile as fast as one; a march per camera otherwise."""
+    if len(cameras) == 1:
+        return [view(cameras[0])]
+    # known degenerate values are refused here, naming the camera; inside lax.map they
+    # would be traced, and refused at run time without the index
+    for i, cam in enumerate(cameras):
+        try:
+            _checks.refuse(cam, cam._degenerate(), "volshade.Camera", traced=False)
+        except ValueError as err:
+            raise ValueError(f"volshade.render: `camera[{i}]`: {err}") from None
+    # (a leaf may be a Python float, set with eqx.tree_at)
     structure = {(jax.tree_util.tree_structure(c),
-                  tuple((x.shape, x.dtype) for x in jax.tree_util.tree_leaves(c)))
+                  tuple((jnp.shape(x), jnp.result_type(x)) for x in jax.tree_util.tree_leaves(c)))
                  for c in cameras}
-    if len(cameras) == 1 or len(structure) > 1:
+    if len(structure) > 1:
         return [view(c) for c in cameras]
     stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *cameras)
     images = jax.lax.map(view, stacked)
     return [images[i] for i in range(len(cameras))]
 
 
-def render(scene: Scene, camera: Camera | Sequence[Camera]
+def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
            ) -> Float[Array, "H W 4"] | list[Float[Array, "H W 4"]]:
     """Render ``scene`` from ``camera``, computing only the effects the scene names.
 
@@ -307,8 +318,11 @@ def render(scene: Scene, camera: Camera | Sequence[Camera]
             views of a sequence share everything that does not depend on the view,
             computed once: the ambient volume (LAO, feature AO, obscurance), the
             saliency modulation, the clip mask and the gradient volume. Cameras of
-            one image shape and projection are marched by one compiled loop
-            (``jax.lax.map``), so a turntable of many views compiles like one.
+            one structure (image shape, projection, and the shapes and dtypes of
+            their values) are marched by one compiled loop (``jax.lax.map``), so a
+            turntable of many views compiles like one. The images equal those of
+            one render per camera up to rounding (XLA may order the arithmetic of
+            the two programs differently: about 1e-6 in float32).
 
     Returns:
         ``(H, W, 4)`` RGB (background blended in) and accumulated opacity; for a

@@ -51,10 +51,12 @@ class Phong(eqx.Module):
         _checks.refuse(self, self._problems(), "volshade.Phong", traced=False)
 
     def _problems(self) -> list[tuple[Array, str]]:
-        problems = [(~(jnp.isfinite(getattr(self, name)) & (getattr(self, name) >= 0)),
-                     f"`{name}` must be a finite number >= 0.")
-                    for name in ("ambient", "diffuse", "specular", "shininess")]
-        return [*problems, (~(self.shininess > 0), "`shininess` must be > 0.")]
+        # as arrays: a leaf set to a Python float (eqx.tree_at) would make `~` bitwise
+        values = {name: jnp.asarray(getattr(self, name))
+                  for name in ("ambient", "diffuse", "specular", "shininess")}
+        problems = [(~(jnp.isfinite(v) & (v >= 0)), f"`{name}` must be a finite number >= 0.")
+                    for name, v in values.items()]
+        return [*problems, (~(values["shininess"] > 0), "`shininess` must be > 0.")]
 
     def checked(self) -> "Phong":
         """These coefficients, refused at run time where traced values are out of range."""
