@@ -76,19 +76,22 @@ def test_several_views_share_what_does_not_depend_on_the_view(monkeypatch):
     monkeypatch.setattr(scene_module, "march_view",
                         lambda *a: calls.append("view") or real_view(*a))
     alike = [Camera.orbit(azimuth=a, elevation=15.0, image_shape=(5, 4)) for a in (0, 70, 140)]
-    mixed = [alike[0], Camera.orbit(azimuth=200.0, image_shape=(3, 6)),
-             Camera.orbit(azimuth=250.0, image_shape=(5, 4), projection="orthographic")]
-    for cameras, views in ((alike, 1), (tuple(mixed), 3)):  # one mapped march; one each
+    mixed = (alike[0], Camera.orbit(azimuth=250.0, image_shape=(3, 6),
+                                    projection="orthographic"))
+    for cameras, views in ((alike, 1), (mixed, 2)):  # one mapped march; one each
         calls.clear()
         images = eqx.filter_jit(render)(scene, cameras)
         # the shared volumes once, not once per camera
         assert sorted(calls) == ["gradient", "lao", *["view"] * views]
-        assert isinstance(images, list) and len(images) == 3
+        assert isinstance(images, list) and len(images) == len(cameras)
         for image, cam in zip(images, cameras, strict=True):
             np.testing.assert_allclose(image, eqx.filter_jit(render)(scene, cam), atol=1e-12)
 
+    plain = Scene(volume=scene.volume, transfer=scene.transfer, shading="phong", ambient="lao",
+                  lao=scene.lao)  # standard compositing: a cheaper gradient to compile
+
     def loss(radius, cameras):
-        s = eqx.tree_at(lambda s: s.lao.radius, scene, radius)
+        s = eqx.tree_at(lambda s: s.lao.radius, plain, radius)
         images = render(s, cameras) if isinstance(cameras, list) else [render(s, cameras)]
         return sum(jnp.sum(jnp.arange(i.size).reshape(i.shape) * i) for i in images)
 
@@ -113,7 +116,6 @@ def test_leaves_set_to_python_floats_render():
     floats = eqx.tree_at(lambda s: (s.phong.shininess, s.importance.darkening), scene,
                          (float(scene.phong.shininess), float(scene.importance.darkening)))
     wide = eqx.tree_at(lambda c: c.fov, cam, float(cam.fov))
-    np.testing.assert_allclose(render(floats, wide), want, atol=1e-12)
     for image in render(floats, [wide, cam]):
         np.testing.assert_allclose(image, want, atol=1e-12)
 

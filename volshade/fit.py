@@ -17,8 +17,10 @@ array leaf, so the solver's loop is compiled once per fit, whatever values it tr
 
 Bounds: a parameter with bounds is fitted through a smooth bijection from the real
 line onto its interval (a logistic for ``(low, high)``, a softplus for a half line),
-so no step of the solver leaves the interval (an LAO radius below its offset, an
-opacity above 1 would otherwise stop the fit with a runtime error). The initial
+so no step of the solver leaves the interval. Give bounds to every parameter with a
+domain (an LAO radius above its offset, opacities and colours in [0, 1], Phong
+coefficients and importance exponents >= 0 or > 0): the renderer refuses values
+outside it, so a step there would stop the fit with that runtime error. The initial
 value must lie strictly inside.
 
 Derivatives: the render is differentiated in reverse mode (LAO's gradient is a
