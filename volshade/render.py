@@ -174,10 +174,12 @@ def medium(
     measured = composition == "importance"
     gradient = regression_gradient(volume, spacing=spacing, size=3) \
         if shader.needs_gradient or measured else None
+    phong = Phong() if phong is None else phong
+    if shader.needs_gradient:  # the lit shaders, which read the Phong coefficients
+        phong = phong.checked()
     return Medium(
         volume=volume, transfer=transfer, spacing=spacing, step=step, shader=shader,
-        compositor=comp, phong=Phong() if phong is None else phong.checked(), ambient=ambient,
-        opacity_scale=opacity_scale,
+        compositor=comp, phong=phong, ambient=ambient, opacity_scale=opacity_scale,
         importance=(Importance() if importance is None else importance.checked())
         if measured else None,
         background=background, gradient=gradient,
