@@ -119,8 +119,8 @@ landscape = []
 for r in radii:
     scene_r = eqx.tree_at(lambda s: s.lao.radius, truth,
                           jnp.asarray(r, truth.lao.radius.dtype))
-    differences = [np.asarray(render(scene_r, c) - t)[..., :3]
-                   for c, t in zip(cameras, targets, strict=True)]
+    differences = [np.asarray(image - t)[..., :3]
+                   for image, t in zip(render(scene_r, cameras), targets, strict=True)]
     landscape.append(np.mean([np.mean(d**2) for d in differences]))
 
 # %% [markdown]
