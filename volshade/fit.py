@@ -49,7 +49,7 @@ from jax.custom_derivatives import SymbolicZero
 from . import _checks
 from ._types import Array, ArrayLike, Float
 from .camera import Camera
-from .scene import Scene, render
+from .scene import Scene, _check_cameras, render
 
 _WHERE = "volshade.fit"
 
@@ -250,10 +250,8 @@ def _one_per_camera(value: Any, name: str, count: int, single: bool, *, what: st
 
 def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, Array | None]]:
     """Cameras, targets and weights as one list of views, their shapes checked."""
+    _check_cameras(camera, _WHERE)
     cameras = [camera] if isinstance(camera, Camera) else list(camera)
-    if not all(isinstance(c, Camera) for c in cameras) or not cameras:
-        raise TypeError(f"{_WHERE}: `camera` must be a volshade.Camera or a non-empty "
-                        f"sequence of them, got {camera!r:.80}.")
     single = isinstance(camera, Camera)
     targets = _one_per_camera(target, "target", len(cameras), single, what="images",
                               stack="a (V, H, W, C) stack", stacked_ndim=4,

@@ -271,16 +271,17 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
     return checked(scene, "scene"), checked(camera, "camera")
 
 
-def _check_cameras(camera: Any) -> None:
-    """Refuse anything but a camera or a non-empty list or tuple of cameras."""
+def _check_cameras(camera: Any, where: str = "volshade.render") -> None:
+    """Refuse anything but a camera or a non-empty list or tuple of cameras (for
+    :func:`render` and :func:`volshade.fit`)."""
     if isinstance(camera, Camera):
         return
     if not isinstance(camera, list | tuple) or not camera:
-        raise TypeError(f"volshade.render: `camera` must be a volshade.Camera or a non-empty "
-                        f"list or tuple of them, got {camera!r:.80}.")
+        raise TypeError(f"{where}: `camera` must be a volshade.Camera or a non-empty "
+                        f"sequence (list or tuple) of them, got {camera!r:.80}.")
     others = sorted({type(c).__name__ for c in camera if not isinstance(c, Camera)})
     if others:
-        raise TypeError(f"volshade.render: every entry of `camera` must be a volshade.Camera, "
+        raise TypeError(f"{where}: every entry of `camera` must be a volshade.Camera, "
                         f"got {', '.join(others)}.")
 
 
