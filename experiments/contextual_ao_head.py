@@ -130,7 +130,7 @@ print(table)
 # much lighter the kept voxels became (the removed ones are left blank).
 
 # %%
-camera = vs.Camera.orbit(azimuth=-90, elevation=10, image_shape=(96, 96) if QUICK else (224, 224),
+camera = vs.Camera.orbit(azimuth=-90, elevation=10, image_shape=(64, 64) if QUICK else (224, 224),
                          distance=2.6)
 common = dict(volume=head, transfer=transfer, spacing=spacing, step=voxel / 2,
               shading="phong", phong=vs.Phong(ambient=0.8, diffuse=0.45, specular=0.1),

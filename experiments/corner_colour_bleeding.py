@@ -15,8 +15,8 @@
 # the RGB obscurance volume (wall voxels drawn in their own colour), and render
 # the scene with the obscurance as its ambient term.
 #
-# `VOLSHADE_QUICK=1` runs at 64^3 (the test suite does); `VOLSHADE_DOCS` sets the
-# output folder (default `docs/results/`).
+# `VOLSHADE_QUICK=1` runs at 32^3 with small renders (the test suite does);
+# `VOLSHADE_DOCS` sets the output folder (default `docs/results/`).
 
 # %%
 import os
@@ -36,7 +36,7 @@ import volshade as vs  # noqa: E402
 from volshade.obscurance import RHO_FUNCTIONS  # noqa: E402
 
 QUICK = os.environ.get("VOLSHADE_QUICK", "0") == "1"
-N = 64 if QUICK else 128
+N = 32 if QUICK else 128
 D_MAX = N / 2
 _default = pathlib.Path(__file__).resolve().parents[1] / "docs" / "results" \
     if "__file__" in globals() else pathlib.Path("docs/results")
@@ -133,7 +133,8 @@ print(table)
 # %%
 smooth = jnp.asarray(gaussian(np.asarray(opacity), sigma=1.0), jnp.float32)
 white = vs.TransferFunction.from_points([(0.0, 1, 1, 1, 0.0), (1.0, 1, 1, 1, 0.9)])
-camera = vs.Camera.orbit(azimuth=45, elevation=35, image_shape=(192, 192), distance=2.4)
+camera = vs.Camera.orbit(azimuth=45, elevation=35, distance=2.4,
+                         image_shape=(64, 64) if QUICK else (192, 192))
 views = []
 for rho in RHO_FUNCTIONS:
     ambient = colors * vs.obscurance(smooth, directions=directions, d_max=D_MAX, rho=rho,

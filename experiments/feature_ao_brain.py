@@ -23,8 +23,8 @@
 # 4. the cost (its Tables 2 and 3): classic AO, each feature, the merge, and the
 #    per-feature bricks.
 #
-# `VOLSHADE_QUICK=1` runs on the brain downsampled by 4 (the test suite does), else
-# by 2; `VOLSHADE_DOCS` sets the output folder (default `docs/results/`);
+# `VOLSHADE_QUICK=1` runs on the brain downsampled by 6 with small renders (the test
+# suite does), else by 2; `VOLSHADE_DOCS` sets the output folder (default `docs/results/`);
 # `VOLSHADE_DATA` the real-data folder.
 
 # %%
@@ -45,7 +45,7 @@ from skimage.metrics import structural_similarity  # noqa: E402
 import volshade as vs  # noqa: E402
 
 QUICK = os.environ.get("VOLSHADE_QUICK", "0") == "1"
-DOWNSAMPLE = 4 if QUICK else 2
+DOWNSAMPLE = 6 if QUICK else 2
 _default = pathlib.Path(__file__).resolve().parents[1] / "docs" / "results" \
     if "__file__" in globals() else pathlib.Path("docs/results")
 OUT = pathlib.Path(os.environ.get("VOLSHADE_DOCS", _default))
@@ -129,7 +129,7 @@ assert np.all(merged["max"] >= classic - 1e-5), "feature AO is never darker than
 # AO shades by modulating the colour (unlit: colour x AO), as in the paper.
 
 # %%
-camera = vs.Camera.orbit(azimuth=60, elevation=25, image_shape=(96, 96) if QUICK else (192, 192),
+camera = vs.Camera.orbit(azimuth=60, elevation=25, image_shape=(64, 64) if QUICK else (192, 192),
                          distance=1.7)
 common = dict(volume=vol, transfer=transfer, spacing=spacing, step=spacing[0] / 2,
               background=(1.0, 1.0, 1.0))
