@@ -111,8 +111,11 @@ def test_bad_clips_raise_clear_errors():
         vs.clip_mask((4, 4), SHAPES["sphere"])
     with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):
         vs.clip_opacity(jnp.ones((4, 4, 4)), "sphere")
-    with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf"):
-        vs.clip_opacity(jnp.ones((4, 4, 4)).at[0, 0, 0].set(jnp.nan), SHAPES["sphere"])
+    holed = jnp.ones((4, 4, 4)).at[0, 0, 0].set(jnp.nan)
+    with pytest.raises(ValueError, match="NaN or inf"):  # eager: at once
+        vs.clip_opacity(holed, SHAPES["sphere"])
+    with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf"):  # traced: at run time
+        eqx.filter_jit(vs.clip_opacity)(holed, SHAPES["sphere"])
 
 
 def test_half_precision_clips_are_measured_in_float32():

@@ -352,7 +352,7 @@ def test_bad_inputs_raise_clear_errors():
         vs.feature_ao(vol, features=[SHELLS_TF, "skull"], **kw)
     with pytest.raises(ValueError, match="radius.*offset"):
         vs.feature_ao(vol, features=[SHELLS_TF], directions=DIRS, radius=1.0, offset=2.0)
-    with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf"):
+    with pytest.raises(ValueError, match="NaN or inf"):  # eager: at once
         vs.feature_ao(vol.at[1, 2, 3].set(jnp.nan), features=[SHELLS_TF], **kw)
     with pytest.raises(ValueError, match="shape of `ao`"):
         vs.merge_feature_ao(jnp.ones((2, 4, 4, 4)), jnp.ones((3, 4, 4, 4)))
@@ -360,7 +360,7 @@ def test_bad_inputs_raise_clear_errors():
         vs.merge_feature_ao(jnp.ones((0, 4, 4, 4)), jnp.ones((0, 4, 4, 4)))
     with pytest.raises(ValueError, match=r"\(F, D, H, W\)"):
         vs.merge_feature_ao(jnp.ones((4, 4, 4)), jnp.ones((4, 4, 4)))
-    with pytest.raises(eqx.EquinoxRuntimeError, match=r"\[0, 1\]"):
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
         vs.merge_feature_ao(jnp.full((1, 4, 4, 4), 1.5), jnp.ones((1, 4, 4, 4)))
     with pytest.raises(TypeError, match=r"list of features.*\[TransferFunction"):
         vs.feature_ao(vol, features=SHELLS_TF, **kw)

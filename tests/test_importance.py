@@ -131,6 +131,33 @@ def test_lighting_analytic_and_two_sided():
     np.testing.assert_allclose(lighting_importance(n, v, v, jnp.asarray(0.5)), 3 - 0.5 ** 30)
 
 
+def test_silhouetteness_and_lighting_under_jit_vmap_grad_and_their_errors():
+    f = random_features(6, seed=5)
+    n, v, m_g = f["normal"], jnp.broadcast_to(f["view"], f["normal"].shape), f["gradient_magnitude"]
+    for fn in (lambda *a: silhouetteness(*a, exponent=2.0),
+               lambda n, v, m: lighting_importance(n, v, v, m, gradient_exponent=3.0)):
+        eager = fn(n, v, m_g)
+        np.testing.assert_allclose(jax.jit(fn)(n, v, m_g), eager, rtol=1e-13)
+        np.testing.assert_allclose(jax.vmap(fn)(n, v, m_g), eager, rtol=1e-13)
+        check_grad_fd(lambda m, fn=fn: jnp.sum(fn(n, v, m) ** 2), m_g)
+    # m_G outside [0, 1] is refused, not clipped; so are exponents <= 0 and s1 >= s2:
+    # at once on concrete values, at run time under jit
+    bad = [(lambda m: silhouetteness(n, v, m), m_g.at[0].set(1.5), "gradient_magnitude"),
+           (lambda m: lighting_importance(n, v, v, m), m_g.at[0].set(-0.1),
+            "gradient_magnitude"),
+           (lambda m: lighting_importance(n, v, v, m, gradient_exponent=0.0), m_g,
+            "gradient_exponent"),
+           (lambda m: silhouetteness(n, v, m, start=0.8, end=0.2), m_g, "start"),
+           (lambda m: silhouetteness(n.at[0, 1].set(jnp.nan), v, m), m_g, "normal")]
+    for fn, m, name in bad:
+        with pytest.raises(ValueError, match=f"`{name}`"):
+            fn(m)
+        with pytest.raises(eqx.EquinoxRuntimeError, match=f"`{name}`"):
+            jax.block_until_ready(eqx.filter_jit(fn)(m))
+    with pytest.raises(ValueError, match=r"`light` must be \(\.\.\., 3\)"):
+        lighting_importance(n, v, jnp.ones(2), m_g)
+
+
 def test_measures_individually():
     f = random_features(6, seed=4)
     one = {w: 0.0 for w in WEIGHTS}

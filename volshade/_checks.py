@@ -1,9 +1,10 @@
 """Input validation shared by the public entry points.
 
 Shape, dtype and static-option errors are raised at trace time as ``TypeError``
-or ``ValueError`` naming the function, the argument and the fix. Value checks on
-(possibly traced) data go through ``eqx.error_if`` so they survive ``jax.jit``;
-callers must use the returned array, or the check is dead code.
+or ``ValueError`` naming the function, the argument and the fix. Value checks go
+through :func:`refuse`: a ``ValueError`` at once on concrete data (an eager call),
+``eqx.error_if`` on traced data, so they survive ``jax.jit``; callers must use the
+returned array, or the check is dead code.
 """
 
 from collections.abc import Mapping
@@ -102,7 +103,7 @@ def check_ndim(x: Array, ndim: int, name: str, where: str, layout: str) -> None:
 
 def volume(x: Any, name: str, where: str, *, unit_range: bool = False) -> Array:
     """Validate a ``(D, H, W)`` volume: rank and dtype at trace time, finiteness (and
-    optionally ``[0, 1]``) at run time via ``eqx.error_if``."""
+    optionally ``[0, 1]``) with :func:`refuse`."""
     arr = as_float_array(x, name, where)
     check_ndim(arr, 3, name, where, "(D, H, W)")
     return finite(arr, name, where, unit_range=unit_range)
@@ -114,20 +115,18 @@ _OPACITY_HINT = ("(opacities); map it through a transfer function or `jnp.clip` 
 
 def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
            hint: str = _OPACITY_HINT) -> Array:
-    """``arr``, refused at run time when it holds NaN or inf, or (``unit_range``) values
-    outside [0, 1] (:func:`in_unit_range`)."""
-    arr = eqx.error_if(
-        arr, ~jnp.all(jnp.isfinite(arr)),
-        f"{where}: `{name}` contains NaN or inf; clean the data (e.g. `jnp.nan_to_num`) first.",
-    )
+    """``arr``, refused (:func:`refuse`) when it holds NaN or inf, or (``unit_range``)
+    values outside [0, 1] (:func:`in_unit_range`)."""
+    arr = refuse(arr, [(~jnp.all(jnp.isfinite(arr)), f"`{name}` contains NaN or inf; clean "
+                        f"the data (e.g. `jnp.nan_to_num`) first.")], where)
     return in_unit_range(arr, name, where, hint=hint) if unit_range else arr
 
 
 def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT) -> Array:
-    """``arr``, refused at run time when it holds values outside [0, 1] (NaN passes:
-    :func:`finite` refuses it); ``hint`` follows "must lie in [0, 1]"."""
-    return eqx.error_if(arr, jnp.any((arr < 0) | (arr > 1)),
-                        f"{where}: `{name}` must lie in [0, 1] {hint}.")
+    """``arr``, refused (:func:`refuse`) when it holds values outside [0, 1] (NaN
+    passes: :func:`finite` refuses it); ``hint`` follows "must lie in [0, 1]"."""
+    return refuse(arr, [(jnp.any((arr < 0) | (arr > 1)), f"`{name}` must lie in [0, 1] {hint}.")],
+                  where)
 
 
 def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:

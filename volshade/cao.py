@@ -81,7 +81,8 @@ def contextual_ao(
         ValueError: ``unclipped`` of another shape than ``alpha``, ``brick_size < 1``,
             and every error of :func:`~volshade.lao.lao`.
         TypeError: ``clip`` not a clip shape.
-        equinox.EquinoxRuntimeError: ``unclipped`` not finite or outside ``[0, 1]``.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+            ``unclipped`` not finite or outside ``[0, 1]``.
 
     References:
         Titov, Kersten-Oertel, Drouin, "Contextual ambient occlusion".

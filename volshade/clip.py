@@ -188,10 +188,10 @@ def _checked(clip: Clip) -> Clip:
     finite = functools.reduce(jnp.logical_and, [jnp.all(jnp.isfinite(x)) for x in leaves])
     positive = functools.reduce(jnp.logical_and, [jnp.all(getattr(clip, name) > 0)
                                                   for name in clip.sizes], jnp.asarray(True))
-    return eqx.error_if(
-        clip, ~(finite & positive & _orthonormal(clip.rotation)),
-        f"volshade.{type(clip).__name__}: the clip's leaves must be finite, its sizes > 0 "
-        f"and `rotation` orthonormal (a rotation matrix).")
+    return _checks.refuse(
+        clip, [(~(finite & positive & _orthonormal(clip.rotation)),
+                "the clip's leaves must be finite, its sizes > 0 and `rotation` orthonormal "
+                "(a rotation matrix).")], f"volshade.{type(clip).__name__}")
 
 
 def _voxel_distances(shape: tuple[int, int, int], clip: Clip) -> Array:

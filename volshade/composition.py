@@ -42,7 +42,6 @@ import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -586,8 +585,8 @@ def composite(
 
     Raises:
         ValueError: mismatched shapes, ``background_importance`` without
-            ``importance``; at run time (``eqx.error_if``) NaN/inf in the inputs
-            or alphas outside [0, 1].
+            ``importance``; NaN/inf in the inputs or alphas outside [0, 1] (traced:
+            ``equinox.EquinoxRuntimeError`` at run time).
         TypeError: non-numeric inputs.
 
     Example:
@@ -642,9 +641,9 @@ def composite(
         if bg_imp.ndim > 0 and bg_imp.shape != batch:
             raise ValueError(f"{where}: `background_importance` must be a scalar or "
                              f"(...) = {batch}, got {bg_imp.shape}.")
-        bg_imp = eqx.error_if(
-            bg_imp.astype(dtype), jnp.any(jnp.isnan(bg_imp) | (bg_imp == jnp.inf)),
-            f"{where}: `background_importance` must be finite or -inf (no background "
-            f"importance), got NaN or +inf.")
+        bg_imp = _checks.refuse(
+            bg_imp.astype(dtype), [(jnp.any(jnp.isnan(bg_imp) | (bg_imp == jnp.inf)),
+                                    "`background_importance` must be finite or -inf (no "
+                                    "background importance), got NaN or +inf.")], where)
     state = _importance_scan(importance_init(batch, dtype), colors, alphas, importance, unroll)
     return importance_finish(state, bg, bg_imp)

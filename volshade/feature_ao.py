@@ -175,7 +175,8 @@ def merge_feature_ao(
     Raises:
         ValueError: ``ao`` or ``opacities`` not 4-D or empty (no feature), shapes that
             differ, an unknown ``merge``.
-        equinox.EquinoxRuntimeError: NaN, inf or values outside ``[0, 1]``.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+            NaN, inf or values outside ``[0, 1]``.
 
     Example:
         >>> ao = jnp.stack([jnp.full((4, 4, 4), 0.75), jnp.full((4, 4, 4), 0.5)])

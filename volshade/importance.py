@@ -38,6 +38,7 @@ from ._numerics import safe_div, safe_norm, safe_normalize, safe_pow, smoothstep
 from ._types import Array, ArrayLike, Float
 from .gradient import gradient_magnitude
 
+_VECTORS = ("normal", "view", "light")
 _WEIGHTS = ("intensity", "extinction", "gradient", "silhouette", "unocclusion", "lighting")
 
 
@@ -150,6 +151,25 @@ def _dot(a: Array, b: Array) -> Array:
     return jnp.sum(a * b, axis=-1)
 
 
+def _feature(value: ArrayLike, name: str, where: str, *, check: bool = True) -> Array:
+    """A measure's input as a floating array, vectors checked to be ``(..., 3)``; with
+    ``check``, refused at run time where it is not finite or outside its domain (the
+    measures assume it: they would clip it, or give a wrong value without an error)."""
+    v = _checks.as_float_array(value, name, where)
+    if name in _VECTORS and (v.ndim < 1 or v.shape[-1] != 3):
+        raise ValueError(f"{where}: `{name}` must be (..., 3) in (d, h, w) order, "
+                         f"got {v.shape}.")
+    if not check:
+        return v
+    v = _checks.finite(v, name, where)
+    if name in ("extinction", "optical_depth"):
+        return _checks.refuse(v, [(jnp.any(v < 0), f"`{name}` must be >= 0.")], where)
+    if name == "gradient_magnitude":
+        return _checks.in_unit_range(v, name, where, hint="(normalise it by the volume's "
+                                     "maximum: normalized_gradient_magnitude)")
+    return v
+
+
 def silhouetteness(
     normal: Float[ArrayLike, "*batch 3"],
     view: Float[ArrayLike, "*batch 3"],
@@ -166,15 +186,29 @@ def silhouetteness(
             $|V \cdot N| = 0$).
         view: ``(..., 3)`` view vector $V$ (normalised here).
         gradient_magnitude: ``(...)`` normalised gradient magnitude $m_G$ in [0, 1].
-        exponent, start, end: $p$, $s_1$, $s_2$.
+        exponent, start, end: $p > 0$, $s_1 < s_2$.
 
     Returns:
         ``(...)`` silhouetteness in [0, 1].
+
+    Raises:
+        ValueError: vectors not ``(..., 3)``; at run time, inputs that are not
+            finite, $m_G$ outside [0, 1], $p \le 0$ or $s_1 \ge s_2$.
     """
-    n = safe_normalize(jnp.asarray(normal))
-    v = safe_normalize(jnp.asarray(view))
-    facing = jnp.abs(_dot(n, v))
-    return safe_pow(jnp.asarray(gradient_magnitude), exponent) * smoothstep(start, end, 1 - facing)
+    where = "volshade.silhouetteness"
+    n, v = (_feature(x, k, where) for x, k in ((normal, "normal"), (view, "view")))
+    m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
+    exponent, start, end = (_checks.finite(_checks.as_float_array(x, k, where), k, where)
+                            for x, k in ((exponent, "exponent"), (start, "start"), (end, "end")))
+    m_g = _checks.refuse(m_g, [(jnp.any(exponent <= 0), "`exponent` must be > 0."),
+                               (jnp.any(start >= end), "`start` must be < `end` (the "
+                                "smoothstep's edges).")], where)
+    return _silhouetteness(n, v, m_g, exponent, start, end)
+
+
+def _silhouetteness(n: Array, v: Array, m_g: Array, exponent, start, end) -> Array:
+    facing = jnp.abs(_dot(safe_normalize(n), safe_normalize(v)))
+    return safe_pow(m_g, exponent) * smoothstep(start, end, 1 - facing)
 
 
 def lighting_importance(
@@ -196,19 +230,38 @@ def lighting_importance(
     Args:
         normal, view, light: ``(..., 3)`` vectors $N$, $V$, $L$ (normalised here).
         gradient_magnitude: ``(...)`` $m_G$ in [0, 1].
-        specular_exponent, diffuse_exponent, gradient_exponent: $p_1$, $p_2$, $p_3$.
+        specular_exponent, diffuse_exponent, gradient_exponent: $p_1$, $p_2$,
+            $p_3$, all $> 0$.
 
     Returns:
         ``(...)`` importance in [0, 3]: high where the Phong illumination is weak.
+
+    Raises:
+        ValueError: vectors not ``(..., 3)``; at run time, inputs that are not
+            finite, $m_G$ outside [0, 1] or an exponent $\le 0$.
     """
-    n = safe_normalize(jnp.asarray(normal))
-    v = safe_normalize(jnp.asarray(view))
-    l = safe_normalize(jnp.asarray(light))  # noqa: E741
+    where = "volshade.lighting_importance"
+    n, v, l = (_feature(x, k, where) for x, k in  # noqa: E741
+               ((normal, "normal"), (view, "view"), (light, "light")))
+    m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
+    exponents = {k: _checks.finite(_checks.as_float_array(x, k, where), k, where)
+                 for x, k in ((specular_exponent, "specular_exponent"),
+                              (diffuse_exponent, "diffuse_exponent"),
+                              (gradient_exponent, "gradient_exponent"))}
+    m_g = _checks.refuse(m_g, [(jnp.any(x <= 0), f"`{k}` must be > 0.")
+                               for k, x in exponents.items()], where)
+    return _lighting_importance(n, v, l, m_g, *exponents.values())
+
+
+def _lighting_importance(n: Array, v: Array, l: Array, m_g: Array,  # noqa: E741
+                         specular_exponent, diffuse_exponent, gradient_exponent) -> Array:
+    n, v, l = safe_normalize(n), safe_normalize(v), safe_normalize(l)  # noqa: E741
     n = jnp.where((_dot(n, v) < 0)[..., None], -n, n)
     h = safe_normalize(l + v)
     n_h = jnp.clip(_dot(n, h), 0, 1)
     n_l = jnp.clip(_dot(n, l), 0, 1)
-    m_g = jnp.clip(jnp.asarray(gradient_magnitude), 0, 1)
+    # m_G is in [0, 1] (checked, or a trilinear blend of such values, which rounding
+    # can lift by an ulp: safe_pow gives 0 for the negative 1 - m_G then, as for 0)
     return (3 - safe_pow(n_h, specular_exponent) - safe_pow(n_l, diffuse_exponent)
             - safe_pow(1 - m_g, gradient_exponent))
 
@@ -282,24 +335,10 @@ def _sample_importance(params, scalars, vectors, global_weight, *, check_finite:
     ``check_finite=False``: its features come from a checked volume, and a run-time
     check at every step of the march would cost a host round trip on a GPU."""
     where = "volshade.sample_importance"
-
-    def convert(v, k):
-        v = _checks.as_float_array(v, k, where)
-        if not check_finite:
-            return v
-        v = _checks.finite(v, k, where)
-        if k in ("extinction", "optical_depth"):  # the measures would clip them
-            return _checks.refuse(v, [(jnp.any(v < 0), f"`{k}` must be >= 0.")], where)
-        if k == "gradient_magnitude":
-            return _checks.in_unit_range(v, k, where, hint="(normalise it by the volume's "
-                                         "maximum: normalized_gradient_magnitude)")
-        return v
-
-    scalars = {k: convert(v, k) for k, v in scalars.items() if v is not None}
-    vectors = {k: convert(v, k) for k, v in vectors.items() if v is not None}
-    for k, v in vectors.items():
-        if v.ndim < 1 or v.shape[-1] != 3:
-            raise ValueError(f"{where}: `{k}` must be (..., 3) in (d, h, w) order, got {v.shape}.")
+    scalars = {k: _feature(v, k, where, check=check_finite)
+               for k, v in scalars.items() if v is not None}
+    vectors = {k: _feature(v, k, where, check=check_finite)
+               for k, v in vectors.items() if v is not None}
     if not scalars and not vectors:
         raise ValueError(f"{where}: give at least one feature (intensity=, extinction=, "
                          f"gradient_magnitude=, normal=/view=, optical_depth=).")
@@ -334,16 +373,16 @@ def _sample_importance(params, scalars, vectors, global_weight, *, check_finite:
     scale = jnp.ones(batch, dtype)
     n, v = vectors.get("normal"), vectors.get("view")
     if n is not None and v is not None and m_g is not None:
-        sil = silhouetteness(n, v, m_g, exponent=p["silhouette_exponent"],
-                             start=p["silhouette_start"], end=p["silhouette_end"])
+        sil = _silhouetteness(n, v, m_g, p["silhouette_exponent"], p["silhouette_start"],
+                              p["silhouette_end"])
         total = total + p["silhouette"] * sil
         strength = jnp.clip(g, 0, 1)
         scale = jnp.where(p["silhouette"] != 0, jnp.exp(-p["darkening"] * sil * strength),
                           scale)
         light_vec = vectors.get("light", v)
-        total = total + p["lighting"] * lighting_importance(
-            n, v, light_vec, m_g, specular_exponent=p["specular_exponent"],
-            diffuse_exponent=p["diffuse_exponent"], gradient_exponent=p["gradient_exponent"])
+        total = total + p["lighting"] * _lighting_importance(
+            n, v, light_vec, m_g, p["specular_exponent"], p["diffuse_exponent"],
+            p["gradient_exponent"])
     return g * total, scale
 
 
@@ -450,8 +489,9 @@ def focus_weights(
                              where)
     if dtype is None:
         dtype = jnp.result_type(center, radius, inside, outside)
-    radius = eqx.error_if(radius.astype(dtype), ~(radius > 0) | ~jnp.isfinite(radius),
-                          f"{where}: `radius` must be a finite number > 0 pixels.")
+    radius = _checks.refuse(radius.astype(dtype), [(~(radius > 0) | ~jnp.isfinite(radius),
+                                                    "`radius` must be a finite number > 0 "
+                                                    "pixels.")], where)
     rows, cols = jnp.arange(h), jnp.arange(w)
     dr = rows.astype(dtype)[:, None] - center[0].astype(dtype)
     dc = cols.astype(dtype)[None, :] - center[1].astype(dtype)

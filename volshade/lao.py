@@ -595,9 +595,9 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
                          f"direction, e.g. `volshade.directions.icosphere(0)` (12 rays).")
     dirs = dirs.astype(dtype)
     norm = safe_norm(dirs, axis=-1, keepdims=True)
-    dirs = eqx.error_if(dirs, ~jnp.all(jnp.isfinite(dirs)) | jnp.any(norm == 0),
-                        f"{where}: `directions` holds a zero or non-finite vector; "
-                        f"every direction must be a non-zero finite 3-vector.")
+    dirs = _checks.refuse(dirs, [(~jnp.all(jnp.isfinite(dirs)) | jnp.any(norm == 0),
+                                  "`directions` holds a zero or non-finite vector; every "
+                                  "direction must be a non-zero finite 3-vector.")], where)
     return dirs / jnp.where(norm == 0, 1, norm)
 
 
@@ -662,15 +662,14 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
                              f"({max_radius}); raise `max_radius`.")
     radius = _scalar(radius, "radius", dtype, where)
     offset = _scalar(offset, "offset", dtype, where)
-    alpha = eqx.error_if(alpha, ~(offset >= 0) | ~jnp.isfinite(radius),
-                         f"{where}: `offset` must be >= 0 and `radius` finite (voxels).")
-    alpha = eqx.error_if(alpha, ~(radius > offset),
-                         f"{where}: `radius` must be > `offset`; increase the radius or "
-                         f"lower the offset.")
-    if max_radius is not None:
-        alpha = eqx.error_if(alpha, radius > max_radius,
-                             f"{where}: `radius` exceeds `max_radius` ({max_radius}); "
-                             f"raise `max_radius`.")
+    alpha = _checks.refuse(alpha, [
+        (~(offset >= 0) | ~jnp.isfinite(radius),
+         "`offset` must be >= 0 and `radius` finite (voxels)."),
+        (~(radius > offset), "`radius` must be > `offset`; increase the radius or lower the "
+                             "offset."),
+        *([] if max_radius is None else [
+            (radius > max_radius, f"`radius` exceeds `max_radius` ({max_radius}); raise "
+                                  f"`max_radius`.")])], where)
 
     if weights is None:
         weights = jnp.full((n_dirs,), 1 / n_dirs, dtype)
@@ -680,9 +679,9 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
             raise ValueError(f"{where}: `weights` must have shape (L,) = ({n_dirs},), one "
                              f"per direction, got {tuple(weights.shape)}.")
         total = jnp.sum(weights)
-        weights = eqx.error_if(
-            weights, ~jnp.all(jnp.isfinite(weights)) | jnp.any(weights < 0) | ~(total > 0),
-            f"{where}: `weights` must be finite, >= 0 and not all zero.")
+        weights = _checks.refuse(
+            weights, [(~jnp.all(jnp.isfinite(weights)) | jnp.any(weights < 0) | ~(total > 0),
+                       "`weights` must be finite, >= 0 and not all zero.")], where)
         weights = weights / jnp.where(total > 0, total, 1)
 
     bound = max_radius if max_radius is not None else r_value
@@ -771,9 +770,9 @@ def lao(
             or ``offset < 0`` (at trace time when they are numbers), an unknown
             ``implementation``.
         TypeError: non-numeric inputs.
-        equinox.EquinoxRuntimeError: at run time for traced values: ``alpha``
-            outside ``[0, 1]`` or non-finite, ``radius <= offset``, ``offset < 0``,
-            ``radius > max_radius``, negative or all-zero ``weights``.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+            ``alpha`` outside ``[0, 1]`` or non-finite, ``radius <= offset``,
+            ``offset < 0``, ``radius > max_radius``, negative or all-zero ``weights``.
 
     References:
         Hernell, Ljung, Ynnerman, "Efficient ambient and emissive tissue

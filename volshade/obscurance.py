@@ -369,8 +369,8 @@ def _occluder_index(steps: Array, off_b: Array, off_c: Array) -> tuple[Array, Ar
 
 
 def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
-    """``d_max`` as a scalar array: refused at trace time when concrete, at run time
-    (``eqx.error_if``) when traced."""
+    """``d_max`` as a scalar array: refused at once when concrete, at run time when
+    traced (``_checks.refuse``)."""
     if d_max is None or isinstance(d_max, bool | str | bytes) or (
             isinstance(d_max, np.ndarray | jax.Array)
             and not (jnp.issubdtype(d_max.dtype, jnp.floating)
@@ -540,10 +540,10 @@ def obscurance(
             ``ambient`` without ``colors``, ``directions`` not ``(L, 3)`` with
             ``L >= 1`` or containing zero vectors, unknown ``rho`` or a ``rho`` whose
             result does not have the distances' shape, a concrete ``d_max <= 0``.
-        equinox.EquinoxRuntimeError: at run time (``jax.jit`` reports it as a
-            ``JaxRuntimeError`` carrying the same message): NaN/inf in ``density``,
-            ``colors`` outside $[0, 1]$ or NaN, a traced ``d_max`` that is not a
-            finite number > 0.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time)
+            (``jax.jit`` may report it as a ``JaxRuntimeError`` carrying the same
+            message): NaN/inf in ``density``, ``colors`` outside $[0, 1]$ or NaN, a
+            traced ``d_max`` that is not a finite number > 0.
         TypeError: non-numeric inputs, an int or traced ``directions``.
 
     Noisy densities (MRI, CT) speckle the obscurance: the strict "greater than"
@@ -660,9 +660,9 @@ def threshold(
         Array of the input's shape and dtype, in [0, 1].
 
     Raises:
-        ValueError: ``low > high`` for Python numbers, or non-scalar thresholds.
-        equinox.EquinoxRuntimeError: at run time, for array thresholds: ``low > high``,
-            NaN/inf thresholds or obscurance.
+        ValueError: non-scalar thresholds.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+            ``low > high``, NaN/inf thresholds or obscurance.
 
     References:
         Ruiz et al. 2008, section 5.1.
@@ -683,9 +683,9 @@ def threshold(
                          f"{low.shape} and {high.shape}.")
     # checked on the input, which the output always uses (a check on `low` alone
     # would be compiled away where every value is above `high`)
-    obscurance = eqx.error_if(obscurance, ~jnp.isfinite(low) | ~jnp.isfinite(high),
-                              f"{where}: `low` and `high` must be finite.")
-    obscurance = eqx.error_if(obscurance, low > high, f"{where}: `low` must be <= `high`.")
+    obscurance = _checks.refuse(obscurance, [
+        (~jnp.isfinite(low) | ~jnp.isfinite(high), "`low` and `high` must be finite."),
+        (low > high, "`low` must be <= `high`.")], where)
     ramp = safe_div(obscurance - low, high - low)
     out = jnp.where(obscurance < low, jnp.zeros_like(ramp), ramp)
     return jnp.where(obscurance >= high, jnp.ones_like(ramp), out)
@@ -726,9 +726,9 @@ def obscurance_shading(
     Raises:
         ValueError: vectors whose last axis is not 3 or that do not broadcast against
             ``normal``; non-scalar coefficients; a concrete ``shininess <= 0``.
-        equinox.EquinoxRuntimeError: at run time: NaN or inf in ``normal``,
-            ``light``, ``view``, ``obscurance`` or the coefficients; a traced
-            ``shininess <= 0``.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+            NaN or inf in ``normal``, ``light``, ``view``, ``obscurance`` or the
+            coefficients; a traced ``shininess <= 0``.
 
     References:
         Ruiz et al. 2008, eq. (5).

@@ -24,7 +24,6 @@ the gradient volume, the ambient and opacity-scale volumes) followed by
 import math
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -159,9 +158,9 @@ def medium(
         if opacity_scale.shape != volume.shape:
             raise ValueError(f"{where}: `opacity_scale` must have shape {volume.shape}, "
                              f"got {opacity_scale.shape}.")
-        opacity_scale = eqx.error_if(opacity_scale, jnp.any(opacity_scale < 0),
-                                     f"{where}: `opacity_scale` must be >= 0 (a factor on "
-                                     f"opacity).")
+        opacity_scale = _checks.refuse(opacity_scale, [
+            (jnp.any(opacity_scale < 0), "`opacity_scale` must be >= 0 (a factor on "
+                                         "opacity).")], where)
     if not isinstance(transfer, TransferFunction):
         raise TypeError(f"{where}: `transfer` must be a volshade.TransferFunction, got "
                         f"{type(transfer).__name__}.")

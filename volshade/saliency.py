@@ -93,7 +93,8 @@ def saliency(
     Raises:
         ValueError: wrong rank, empty, bad ``size``/``weighting``/``spacing``.
         TypeError: a traced ``spacing`` or ``size`` (static: they set the kernel).
-        equinox.EquinoxRuntimeError: NaN or inf in ``obscurance`` (at run time).
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+            NaN or inf in ``obscurance``.
 
     References:
         Ruiz et al. 2008, eq. (4); Neumann, Csébfalvi, König, Gröller: Gradient
@@ -248,8 +249,8 @@ def viewpoint_saliency(
 
     Raises:
         ValueError: shapes differ, bad ``viewpoints``, unknown ``visibility``.
-        equinox.EquinoxRuntimeError: opacity outside [0, 1], NaN or inf in either
-            volume (at run time).
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+            opacity outside [0, 1], NaN or inf in either volume.
 
     References:
         Ruiz et al. 2008, eq. (6); Lee, Varshney, Jacobs: Mesh saliency. SIGGRAPH 2005.
@@ -309,9 +310,8 @@ def projected_area(
     where = "volshade.saliency.projected_area"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
     level = _checks.scalar(level, "level", where).astype(opacity.dtype)
-    level = eqx.error_if(level, ~jnp.isfinite(level),
-                         f"{where}: `level` must be a finite opacity (0 counts every voxel "
-                         f"with any opacity).")
+    level = _checks.refuse(level, [(~jnp.isfinite(level), "`level` must be a finite opacity "
+                                    "(0 counts every voxel with any opacity).")], where)
 
     # The mask of non-empty voxels is swept (opacity correction keeps 0 and 1 fixed).
     mask = jnp.where(opacity > level, jnp.ones_like(opacity), jnp.zeros_like(opacity))
@@ -396,8 +396,9 @@ def modulate_opacity(
 
     Raises:
         ValueError: shapes differ, ``boost_top`` outside (0, 1], non-scalar ``threshold``.
-        equinox.EquinoxRuntimeError: ``opacity`` or ``saliency`` outside [0, 1], NaN/inf
-            in either volume or in ``threshold`` (at run time).
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+            ``opacity`` or ``saliency`` outside [0, 1], NaN/inf in either volume or in
+            ``threshold``.
 
     Example:
         >>> a = jnp.full((1, 1, 3), 0.5)
@@ -431,9 +432,9 @@ def opacity_factor(
     dtype = saliency.dtype
     boost_top = _boost_top(boost_top, "volshade.opacity_factor")
     threshold = _checks.scalar(threshold, "threshold", "volshade.opacity_factor")
-    threshold = eqx.error_if(threshold.astype(dtype), ~jnp.isfinite(threshold),
-                             "volshade.opacity_factor: `threshold` must be a finite saliency "
-                             "level (0.2 in the paper).")
+    threshold = _checks.refuse(threshold.astype(dtype), [
+        (~jnp.isfinite(threshold), "`threshold` must be a finite saliency level (0.2 in the "
+                                   "paper).")], "volshade.opacity_factor")
     factor = saliency if multiply else jnp.ones_like(saliency)
     if boost_top is not None:
         top = saliency >= 1 - jnp.asarray(boost_top, dtype)

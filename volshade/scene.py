@@ -254,17 +254,16 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
         def check(path, leaf):
             name = prefix + jax.tree_util.keystr(path)
             minus_inf = name in allowed
-            message = (f"volshade.render: `{name}` contains NaN or inf; every scene and "
-                       f"camera parameter must be finite"
-                       f"{' (or -inf)' if minus_inf else ''}.")
+            message = (f"`{name}` contains NaN or inf; every scene and camera parameter "
+                       f"must be finite{' (or -inf)' if minus_inf else ''}.")
             if isinstance(leaf, float):  # a static leaf (e.g. set with eqx.tree_at)
                 if not (math.isfinite(leaf) or (minus_inf and leaf == -math.inf)):
-                    raise ValueError(message)
+                    raise ValueError(f"volshade.render: {message}")
                 return leaf
             if not eqx.is_inexact_array(leaf) or leaf is scene.volume:
                 return leaf
             ok = jnp.isfinite(leaf) | ((leaf == -jnp.inf) if minus_inf else False)
-            return eqx.error_if(leaf, ~jnp.all(ok), message)
+            return _checks.refuse(leaf, [(~jnp.all(ok), message)], "volshade.render")
 
         return jax.tree_util.tree_map_with_path(check, tree)
 

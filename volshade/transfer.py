@@ -104,12 +104,12 @@ class TransferFunction(eqx.Module):
         outside = (jnp.min(volume) < points[0]) | (jnp.max(volume) > points[-1])
         # interpolation would classify all those values like the end points (a 0-255
         # volume through a [0, 1] transfer function renders as one solid blob)
-        return tf, eqx.error_if(
-            volume, outside,
-            f"{where}: `volume` has values outside the transfer function's control points "
-            f"[points[0], points[-1]], which would all be classified like the end points; "
-            f"normalise the volume (e.g. `volshade.data.load(..., normalize=True)`) or give "
-            f"control points over its whole range.")
+        return tf, _checks.refuse(volume, [(
+            outside,
+            "`volume` has values outside the transfer function's control points "
+            "[points[0], points[-1]], which would all be classified like the end points; "
+            "normalise the volume (e.g. `volshade.data.load(..., normalize=True)`) or give "
+            "control points over its whole range.")], where)
 
     @classmethod
     def from_points(
