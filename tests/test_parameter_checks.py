@@ -64,6 +64,17 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     (lambda: vs.Importance(specular_exponent=-1.0), ValueError, "`specular_exponent` must be > 0"),
     (lambda: vs.Importance(silhouette_start=0.9, silhouette_end=0.1), ValueError,
      "`silhouette_start` must be < `silhouette_end`"),
+    # not real numbers: refused by name, not converted (a string) or kept (complex, bool)
+    (lambda: vs.Importance(intensity="2"), TypeError,
+     "volshade.Importance: `intensity` must be a real number"),
+    (lambda: vs.Phong(ambient=0.3 + 0.1j), TypeError, "volshade.Phong: `ambient` .*complex"),
+    (lambda: vs.Focus(radius=True), TypeError, "volshade.Focus: `radius` .*bool"),
+    (lambda: vs.Scene(volume=VOL, transfer=TF, background=None), TypeError,
+     "volshade.Scene: `background` must be a real number"),
+    (lambda: vs.LocalAmbientOcclusion("3"), TypeError, "`radius` must be a real number"),
+    (lambda: vs.IntervalFeature(0.2, "1"), TypeError, "IntervalFeature: `high`"),
+    (lambda: vs.Camera.orbit(fov="30"), TypeError, "Camera.orbit: `fov`"),
+    (lambda: vs.SphereClip(centre=(1.0, 2.0, None), radius=2.0), TypeError, "`centre`"),
 ])
 def test_parameter_modules_refuse_bad_values_at_construction(build, exc, match):
     with pytest.raises(exc, match=match):

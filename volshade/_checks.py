@@ -7,7 +7,8 @@ through :func:`refuse`: a ``ValueError`` at once on concrete data (an eager call
 returned array, or the check is dead code.
 """
 
-from collections.abc import Mapping
+import functools
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import equinox as eqx
@@ -34,14 +35,30 @@ def as_float_array(x: Any, name: str, where: str) -> Array:
     )
 
 
-def float_leaf(x: Any) -> Array:
+def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
     """A parameter leaf as an array of a floating dtype. An int (``d_max=16``,
     ``fov=30``) would otherwise stay an integer leaf, which ``jax.grad`` refuses and
-    ``eqx.filter_grad`` silently skips; floating dtypes are kept as given."""
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.inexact):
+    ``eqx.filter_grad`` silently skips; real floating dtypes are kept as given.
+    Anything else (a string, ``None``, a bool, a complex number) is refused, naming
+    ``name``: a bool would pass as 0 or 1 and a complex number would render its real
+    part."""
+    try:
+        arr = jnp.asarray(x)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{where}: `{name}` must be a real number or an array of them, "
+                        f"got {x!r}.") from err
+    if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.integer)):
+        raise TypeError(f"{where}: `{name}` must be a real number or an array of them, "
+                        f"got {x!r} of dtype {arr.dtype}.")
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
         arr = arr.astype(jnp.result_type(float))
     return arr
+
+
+def leaf(where: str, name: str) -> Callable[[Any], Array]:
+    """The converter of the parameter field ``name`` of ``where`` (``eqx.field``):
+    :func:`float_leaf`, with errors that name the field."""
+    return functools.partial(float_leaf, name=name, where=where)
 
 
 def at_least_float32(arr: Array) -> Array:

@@ -51,11 +51,11 @@ class Camera(eqx.Module):
         projection: ``"perspective"`` or ``"orthographic"`` (static).
     """
 
-    eye: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf)
-    target: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf)
-    up: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf)
-    fov: Float[Array, ""] = eqx.field(converter=_checks.float_leaf)
-    width: Float[Array, ""] = eqx.field(converter=_checks.float_leaf)
+    eye: Float[Array, "3"] = eqx.field(converter=_checks.leaf("volshade.Camera", "eye"))
+    target: Float[Array, "3"] = eqx.field(converter=_checks.leaf("volshade.Camera", "target"))
+    up: Float[Array, "3"] = eqx.field(converter=_checks.leaf("volshade.Camera", "up"))
+    fov: Float[Array, ""] = eqx.field(converter=_checks.leaf("volshade.Camera", "fov"))
+    width: Float[Array, ""] = eqx.field(converter=_checks.leaf("volshade.Camera", "width"))
     image_shape: tuple[int, int] = eqx.field(static=True, default=(256, 256),
                                              converter=lambda s: _image_shape(s))
     projection: str = eqx.field(static=True, default="perspective")
@@ -131,22 +131,24 @@ class Camera(eqx.Module):
             >>> cam.rays()[1].shape
             (64, 64, 3)
         """
+        where = "volshade.Camera.orbit"
+        dtype = jnp.result_type(float)
+        a, e, target, distance, fov, width = (
+            _checks.float_leaf(x, k, where).astype(dtype) for x, k in (
+                (azimuth, "azimuth"), (elevation, "elevation"), (target, "target"),
+                (distance, "distance"), (fov, "fov"), (width, "width")))
         dist = _checks.concrete(distance)
         if dist is not None and not np.all(dist > 0):
-            raise ValueError(f"volshade.Camera.orbit: `distance` must be > 0 (scene units), "
-                             f"got {distance!r}; to look from the other side, change "
+            raise ValueError(f"{where}: `distance` must be > 0 (scene units), got "
+                             f"{dist.tolist()!r}; to look from the other side, change "
                              f"`azimuth` and `elevation`.")
-        dtype = jnp.result_type(float)
-        a = jnp.deg2rad(jnp.asarray(azimuth, dtype))
-        e = jnp.deg2rad(jnp.asarray(elevation, dtype))
+        a, e = jnp.deg2rad(a), jnp.deg2rad(e)
         direction = jnp.stack([jnp.sin(e), jnp.cos(e) * jnp.cos(a), jnp.cos(e) * jnp.sin(a)])
-        target = jnp.asarray(target, dtype)
         # Looking straight along d, "up" must come from the azimuth instead.
         toward_azimuth = jnp.stack([jnp.zeros_like(a), -jnp.cos(a), -jnp.sin(a)])
         up = jnp.where(jnp.abs(jnp.sin(e)) > 1 - 1e-6, toward_azimuth * jnp.sign(jnp.sin(e)),
                        jnp.asarray([1.0, 0.0, 0.0], dtype))
-        return cls(target + jnp.asarray(distance, dtype) * direction, target, up,
-                   jnp.asarray(fov, dtype), jnp.asarray(width, dtype),
+        return cls(target + distance * direction, target, up, fov, width,
                    image_shape=image_shape, projection=projection)
 
     @classmethod
@@ -171,7 +173,7 @@ class Camera(eqx.Module):
             raise TypeError("volshade.Camera.from_view: the view sets azimuth and elevation; "
                             "use Camera.orbit to give them.")
         where = "volshade.Camera.from_view"
-        view = _checks.at_least_float32(_checks.float_leaf(view))
+        view = _checks.at_least_float32(_checks.float_leaf(view, "view", where))
         if view.shape != (3,):
             raise ValueError(f"{where}: `view` must be a (3,) direction, got shape "
                              f"{view.shape}.")

@@ -55,8 +55,8 @@ def _orthonormal(rotation: Array) -> Array:
 
 
 def _pose(centre, rotation, where: str) -> tuple[Array, Array]:
-    centre = _checks.float_leaf(centre)
-    rotation = _checks.float_leaf(np.eye(3) if rotation is None else rotation)
+    centre = _checks.float_leaf(centre, "centre", where)
+    rotation = _checks.float_leaf(np.eye(3) if rotation is None else rotation, "rotation", where)
     if centre.shape != (3,):
         raise ValueError(f"{where}: `centre` must be 3 numbers (d, h, w) in voxels, got shape "
                          f"{centre.shape}.")
@@ -70,7 +70,7 @@ def _pose(centre, rotation, where: str) -> tuple[Array, Array]:
 
 
 def _positive(value, name: str, where: str) -> Array:
-    value = _checks.float_leaf(value)
+    value = _checks.float_leaf(value, name, where)
     _checks.refuse(value, [(~jnp.all(jnp.isfinite(value) & (value > 0)),
                             f"`{name}` must be finite and > 0 (voxels).")], where, traced=False)
     return value

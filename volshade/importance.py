@@ -75,22 +75,38 @@ class Importance(eqx.Module):
         >>> imp = Importance(intensity=4.0, silhouette=2.0)
     """
 
-    global_weight: Float[Array, ""] = eqx.field(default=1.0, converter=_checks.float_leaf)
-    intensity: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
-    extinction: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
-    gradient: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
-    silhouette: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
-    unocclusion: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
-    lighting: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
-    background: Float[Array, ""] = eqx.field(default=0.0, converter=_checks.float_leaf)
-    silhouette_exponent: Float[Array, ""] = eqx.field(default=1.7, converter=_checks.float_leaf)
-    silhouette_start: Float[Array, ""] = eqx.field(default=0.4, converter=_checks.float_leaf)
-    silhouette_end: Float[Array, ""] = eqx.field(default=1.0, converter=_checks.float_leaf)
-    darkening: Float[Array, ""] = eqx.field(default=4.0, converter=_checks.float_leaf)
-    unocclusion_offset: Float[Array, ""] = eqx.field(default=20.0, converter=_checks.float_leaf)
-    specular_exponent: Float[Array, ""] = eqx.field(default=50.0, converter=_checks.float_leaf)
-    diffuse_exponent: Float[Array, ""] = eqx.field(default=5.0, converter=_checks.float_leaf)
-    gradient_exponent: Float[Array, ""] = eqx.field(default=30.0, converter=_checks.float_leaf)
+    global_weight: Float[Array, ""] = eqx.field(
+        default=1.0, converter=_checks.leaf("volshade.Importance", "global_weight"))
+    intensity: Float[Array, ""] = eqx.field(
+        default=0.0, converter=_checks.leaf("volshade.Importance", "intensity"))
+    extinction: Float[Array, ""] = eqx.field(
+        default=0.0, converter=_checks.leaf("volshade.Importance", "extinction"))
+    gradient: Float[Array, ""] = eqx.field(
+        default=0.0, converter=_checks.leaf("volshade.Importance", "gradient"))
+    silhouette: Float[Array, ""] = eqx.field(
+        default=0.0, converter=_checks.leaf("volshade.Importance", "silhouette"))
+    unocclusion: Float[Array, ""] = eqx.field(
+        default=0.0, converter=_checks.leaf("volshade.Importance", "unocclusion"))
+    lighting: Float[Array, ""] = eqx.field(
+        default=0.0, converter=_checks.leaf("volshade.Importance", "lighting"))
+    background: Float[Array, ""] = eqx.field(
+        default=0.0, converter=_checks.leaf("volshade.Importance", "background"))
+    silhouette_exponent: Float[Array, ""] = eqx.field(
+        default=1.7, converter=_checks.leaf("volshade.Importance", "silhouette_exponent"))
+    silhouette_start: Float[Array, ""] = eqx.field(
+        default=0.4, converter=_checks.leaf("volshade.Importance", "silhouette_start"))
+    silhouette_end: Float[Array, ""] = eqx.field(
+        default=1.0, converter=_checks.leaf("volshade.Importance", "silhouette_end"))
+    darkening: Float[Array, ""] = eqx.field(
+        default=4.0, converter=_checks.leaf("volshade.Importance", "darkening"))
+    unocclusion_offset: Float[Array, ""] = eqx.field(
+        default=20.0, converter=_checks.leaf("volshade.Importance", "unocclusion_offset"))
+    specular_exponent: Float[Array, ""] = eqx.field(
+        default=50.0, converter=_checks.leaf("volshade.Importance", "specular_exponent"))
+    diffuse_exponent: Float[Array, ""] = eqx.field(
+        default=5.0, converter=_checks.leaf("volshade.Importance", "diffuse_exponent"))
+    gradient_exponent: Float[Array, ""] = eqx.field(
+        default=30.0, converter=_checks.leaf("volshade.Importance", "gradient_exponent"))
 
     # leaves for which -inf is a value, not an error: a background importance of -inf
     # means "no background" (volshade.composite); the renderer's finiteness check asks
@@ -511,11 +527,15 @@ class Focus(eqx.Module):
         inside, outside: global weights at the focus centre and far from it.
     """
 
-    center: Float[Array, "2"] = eqx.field(converter=_checks.float_leaf, default=(0.5, 0.5))
-    radius: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.25)
+    center: Float[Array, "2"] = eqx.field(
+        converter=_checks.leaf("volshade.Focus", "center"), default=(0.5, 0.5))
+    radius: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.Focus", "radius"), default=0.25)
     kind: str = eqx.field(static=True, default="gaussian")
-    inside: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=1.0)
-    outside: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.0)
+    inside: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.Focus", "inside"), default=1.0)
+    outside: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.Focus", "outside"), default=0.0)
 
     def __check_init__(self):
         _checks.option(self.kind, FOCUS_KINDS, "focus kind", "volshade.Focus")

@@ -861,8 +861,8 @@ class LocalAmbientOcclusion(eqx.Module):
                  brick_size: int | None = None, max_radius: float | None = None,
                  implementation: str = "xla"):
         where = "volshade.LocalAmbientOcclusion"
-        self.radius = jnp.asarray(radius, dtype=float)
-        self.offset = jnp.asarray(offset, dtype=float)
+        self.radius = _checks.float_leaf(radius, "radius", where).astype(float)
+        self.offset = _checks.float_leaf(offset, "offset", where).astype(float)
         # checked here when known, since the default max_radius is derived from it
         # (lao checks traced values again at run time)
         _checks.refuse(self.radius, [(~(jnp.isfinite(self.radius) & (self.radius > 0)),

@@ -824,9 +824,12 @@ class ObscuranceParams(eqx.Module):
             so this changes only which voxels occlude.
     """
 
-    d_max: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=32.0)
-    low: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.0)
-    high: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=1.0)
+    d_max: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.ObscuranceParams", "d_max"), default=32.0)
+    low: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.ObscuranceParams", "low"), default=0.0)
+    high: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.ObscuranceParams", "high"), default=1.0)
     rho: str = eqx.field(static=True, default="sqrt")
     level: int = eqx.field(static=True, default=1)
     color_bleeding: bool = eqx.field(static=True, default=False)

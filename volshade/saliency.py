@@ -472,8 +472,10 @@ class SaliencyModulation(eqx.Module):
     derivative there is 0 almost everywhere).
     """
 
-    threshold: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.2)
-    d_max: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=32.0)
+    threshold: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.SaliencyModulation", "threshold"), default=0.2)
+    d_max: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.SaliencyModulation", "d_max"), default=32.0)
     rho: str = eqx.field(static=True, default="sqrt")
     level: int = eqx.field(static=True, default=1)
     size: int = eqx.field(static=True, default=5)

@@ -176,8 +176,8 @@ class Scene(eqx.Module):
     composition: str = eqx.field(static=True, default="standard")
     importance: Importance = eqx.field(default_factory=Importance)
     focus: Focus | None = None
-    background: Float[Array, "3"] = eqx.field(converter=_checks.float_leaf,
-                                              default=(0.0, 0.0, 0.0))
+    background: Float[Array, "3"] = eqx.field(
+        converter=_checks.leaf("volshade.Scene", "background"), default=(0.0, 0.0, 0.0))
     clip: Clip | None = None
 
     def __check_init__(self):

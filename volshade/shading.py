@@ -40,10 +40,14 @@ class Phong(eqx.Module):
         shininess: Phong exponent $n$.
     """
 
-    ambient: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.35)
-    diffuse: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.65)
-    specular: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=0.25)
-    shininess: Float[Array, ""] = eqx.field(converter=_checks.float_leaf, default=24.0)
+    ambient: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.Phong", "ambient"), default=0.35)
+    diffuse: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.Phong", "diffuse"), default=0.65)
+    specular: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.Phong", "specular"), default=0.25)
+    shininess: Float[Array, ""] = eqx.field(
+        converter=_checks.leaf("volshade.Phong", "shininess"), default=24.0)
 
     def __check_init__(self):
         # checked here when known (built eagerly; leaves may carry a batch axis for

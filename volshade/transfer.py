@@ -190,10 +190,13 @@ class IntervalFeature(eqx.Module):
     high: Float[Array, ""]
 
     def __init__(self, low: float, high: float):
-        if not float(low) < float(high):
-            raise ValueError(f"volshade.IntervalFeature: need low < high, got {low}, {high}.")
-        self.low = jnp.asarray(low, dtype=float)
-        self.high = jnp.asarray(high, dtype=float)
+        where = "volshade.IntervalFeature"
+        self.low = _checks.float_leaf(low, "low", where).astype(float)
+        self.high = _checks.float_leaf(high, "high", where).astype(float)
+        # on the inputs: under jit, even an array made from a Python number is traced
+        known_low, known_high = _checks.concrete(low), _checks.concrete(high)
+        if known_low is not None and known_high is not None and not known_low < known_high:
+            raise ValueError(f"{where}: need low < high, got {low}, {high}.")
 
     def opacity(self, volume: Array, base: TransferFunction, *,
                 step: float | Array | None = None) -> Array:
