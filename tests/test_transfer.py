@@ -131,6 +131,26 @@ def test_features():
         IntervalFeature(0.5, 0.5)
 
 
+def test_interval_features_with_a_batch_axis_or_traced_bounds():
+    tf = _tf()
+    vol = jnp.linspace(0, 1, 27).reshape(3, 3, 3)
+    # one feature per setting, then vmap
+    batched = IntervalFeature([0.0, 0.5], [0.5, 1.0])
+    ops = jax.vmap(lambda f: f.opacity(vol, tf))(batched)
+    for i, (low, high) in enumerate(((0.0, 0.5), (0.5, 1.0))):
+        np.testing.assert_array_equal(ops[i], IntervalFeature(low, high).opacity(vol, tf))
+    with pytest.raises(ValueError, match="low < high"):
+        IntervalFeature([0.0, 0.5], [0.5, 0.4])
+    # bounds traced under jit (even in a list) are checked where they are used
+    lists = jax.jit(lambda low, high: IntervalFeature([low], [high]))(0.0, 0.5)
+    np.testing.assert_array_equal(lists.low, [0.0])
+    select = eqx.filter_jit(lambda low, high: IntervalFeature(low, high).opacity(vol, tf))
+    np.testing.assert_array_equal(select(jnp.asarray(0.0), jnp.asarray(0.5)), ops[0])
+    for low, high in ((0.6, 0.5), (jnp.nan, 0.5)):
+        with pytest.raises(eqx.EquinoxRuntimeError, match="IntervalFeature: need low < high"):
+            jax.block_until_ready(select(jnp.asarray(low), jnp.asarray(high)))
+
+
 def test_values_outside_the_control_points_are_refused():
     # a 0-255 volume through a [0, 1] transfer function would be one solid blob
     tf = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (1.0, 1, 1, 1, 0.5)])

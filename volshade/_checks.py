@@ -87,8 +87,9 @@ def scalar(x: Any, name: str, where: str) -> Array:
 
 
 def concrete(x: Any) -> np.ndarray | None:
-    """``x`` as a NumPy array when its value is known at trace time, else None (a tracer)."""
-    if isinstance(x, jax.core.Tracer):
+    """``x`` as a NumPy array when its value is known at trace time, else None (a tracer,
+    or a sequence holding one)."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(x)):
         return None
     return np.asarray(x)
 

@@ -214,11 +214,14 @@ def silhouetteness(
     where = "volshade.silhouetteness"
     n, v = (_feature(x, k, where) for x, k in ((normal, "normal"), (view, "view")))
     m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
-    exponent, start, end = (_checks.finite(_checks.as_float_array(x, k, where), k, where)
-                            for x, k in ((exponent, "exponent"), (start, "start"), (end, "end")))
-    m_g = _checks.refuse(m_g, [(jnp.any(exponent <= 0), "`exponent` must be > 0."),
-                               (jnp.any(start >= end), "`start` must be < `end` (the "
-                                "smoothstep's edges).")], where)
+    exponent, start, end = (_checks.as_float_array(x, k, where) for x, k in
+                            ((exponent, "exponent"), (start, "start"), (end, "end")))
+    m_g = _checks.refuse(m_g, [
+        (~jnp.all(jnp.isfinite(exponent) & (exponent > 0)), "`exponent` must be a finite "
+                                                            "number > 0."),
+        (~jnp.all(jnp.isfinite(start) & jnp.isfinite(end) & (start < end)),
+         "`start` and `end` must be finite, with `start` < `end` (the smoothstep's edges).")],
+        where)
     return _silhouetteness(n, v, m_g, exponent, start, end)
 
 
@@ -260,11 +263,12 @@ def lighting_importance(
     n, v, l = (_feature(x, k, where) for x, k in  # noqa: E741
                ((normal, "normal"), (view, "view"), (light, "light")))
     m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
-    exponents = {k: _checks.finite(_checks.as_float_array(x, k, where), k, where)
+    exponents = {k: _checks.as_float_array(x, k, where)
                  for x, k in ((specular_exponent, "specular_exponent"),
                               (diffuse_exponent, "diffuse_exponent"),
                               (gradient_exponent, "gradient_exponent"))}
-    m_g = _checks.refuse(m_g, [(jnp.any(x <= 0), f"`{k}` must be > 0.")
+    m_g = _checks.refuse(m_g, [(~jnp.all(jnp.isfinite(x) & (x > 0)),
+                                f"`{k}` must be a finite number > 0.")
                                for k, x in exponents.items()], where)
     return _lighting_importance(n, v, l, m_g, *exponents.values())
 

@@ -194,9 +194,11 @@ class IntervalFeature(eqx.Module):
         self.low = _checks.float_leaf(low, "low", where).astype(float)
         self.high = _checks.float_leaf(high, "high", where).astype(float)
         # on the inputs: under jit, even an array made from a Python number is traced
+        # (traced bounds are checked where they are used, in _select)
         known_low, known_high = _checks.concrete(low), _checks.concrete(high)
-        if known_low is not None and known_high is not None and not known_low < known_high:
-            raise ValueError(f"{where}: need low < high, got {low}, {high}.")
+        if known_low is not None and known_high is not None and \
+                not np.all(known_low < known_high):
+            raise ValueError(f"{where}: need low < high (finite), got {low}, {high}.")
 
     def opacity(self, volume: Array, base: TransferFunction, *,
                 step: float | Array | None = None) -> Array:
@@ -207,7 +209,10 @@ class IntervalFeature(eqx.Module):
         # compared in the volume's dtype, as it is classified: a float32 volume of 0.4
         # lies inside [0.2, 0.4] whatever the dtype the bounds were made in
         low, high = self.low.astype(volume.dtype), self.high.astype(volume.dtype)
-        return jnp.where((volume >= low) & (volume <= high), base_opacity, 0)
+        selected = jnp.where((volume >= low) & (volume <= high), base_opacity, 0)
+        return _checks.refuse(selected, [(~jnp.all(self.low < self.high),
+                                          "need low < high (finite).")],
+                              "volshade.IntervalFeature")
 
 
 Feature = TransferFunction | IntervalFeature
