@@ -71,6 +71,12 @@ def pytest_unconfigure(config):
         shutil.rmtree(os.environ.pop(_CACHE), ignore_errors=True)
 
 
+def pytest_collection_modifyitems(config, items):
+    # the slow tests first (the sort is stable): pytest-xdist hands tests out in
+    # collection order, and a long test started last keeps one core busy alone
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> pathlib.Path:
     """The real-data folder from VOLSHADE_DATA (or ../shared/data); skips when absent."""

@@ -148,6 +148,7 @@ def test_moving_clip_under_jit_and_vmap_never_recompiles():
         np.testing.assert_allclose(np.asarray(got), np.asarray(single), rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_gradients_equal_the_full_recompute_and_finite_differences():
     # unclipped computed inside the differentiated function: its gradient is that of
     # the voxels the clip cannot change, under the clip too

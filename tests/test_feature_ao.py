@@ -239,6 +239,7 @@ FEATURES_2 = [vs.IntervalFeature(0.2, 0.4), vs.IntervalFeature(0.8, 1.0)]
 TF_2 = _ramp_tf([0.0, 0.5, 0.9])
 
 
+@pytest.mark.slow
 def test_bricked_equals_unbricked_values_and_gradients():
     # bricks act on each feature's march, before the merge: one merge is enough
     vol, merge = _two_blobs(), "neighbourhood"

@@ -131,6 +131,7 @@ def test_lighting_analytic_and_two_sided():
     np.testing.assert_allclose(lighting_importance(n, v, v, jnp.asarray(0.5)), 3 - 0.5 ** 30)
 
 
+@pytest.mark.slow
 def test_silhouetteness_and_lighting_under_jit_vmap_grad_and_their_errors():
     f = random_features(6, seed=5)
     n, v, m_g = f["normal"], jnp.broadcast_to(f["view"], f["normal"].shape), f["gradient_magnitude"]

@@ -360,6 +360,7 @@ def test_bricked_gradients_and_vmap(always_bricked):
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
 def test_half_precision_bricked_gradient(always_bricked, dtype):
     # the skipped bricks' gradient is an FFT convolution, which needs float32 or more

@@ -159,6 +159,7 @@ def test_every_launch_computes_the_same(launch, launch_reference):
         np.testing.assert_allclose(g, w, rtol=1e-11, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_radius_and_opacity_gradients_match_finite_differences():
     alpha, radius, offset, _ = _inputs(0)
     ct = jnp.asarray(np.random.default_rng(3).normal(size=alpha.shape))
@@ -214,6 +215,7 @@ def _sparse(shape, seed):
     return jnp.asarray(a)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("brick", [4, 8])
 def test_bricks_skip_empty_tiles_and_change_nothing(brick):
     """With ``brick_size`` the Pallas forward skips the tiles far from any opacity:

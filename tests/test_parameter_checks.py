@@ -24,6 +24,7 @@ def _obscurance_scene(params):
                     obscurance=params)
 
 
+@pytest.mark.slow
 def test_int_parameters_become_float_leaves_that_get_gradients():
     # an int leaf would silently get no gradient from eqx.filter_grad
     modules = [vs.ObscuranceParams(d_max=4, low=0, high=1), vs.SaliencyModulation(d_max=4),

@@ -35,6 +35,7 @@ def _cast(tree, dtype):
         lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, tree)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(SCENES))
 def test_render_float32_agrees_with_float64(name):
     scene = vs.Scene(volume=VOL, transfer=TF, **SCENES[name])

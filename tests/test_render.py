@@ -95,6 +95,7 @@ def test_opacity_correction_converges_as_step_shrinks():
     assert errors[-1] < 0.2 * errors[0]
 
 
+@pytest.mark.slow
 def test_gradient_wrt_transfer_function_matches_finite_differences():
     vol = _smooth_volume(8)
     # control values inside (0, 1), so that the differences stay in the valid range
@@ -116,6 +117,7 @@ def test_gradient_wrt_transfer_function_matches_finite_differences():
         assert float(jnp.max(jnp.abs(g))) > 0
 
 
+@pytest.mark.slow
 def test_jit_vmap_grad_of_march():
     vol = _smooth_volume(8)
     tf = preset("grey")
@@ -239,6 +241,7 @@ def test_phong_render_of_a_ramp_along_h_matches_hand_computation(azimuth, elevat
             np.testing.assert_allclose(lit[..., :3], s * alpha, atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shading", ["none", "phong"])
 def test_no_nan_gradients_on_edge_volumes(shading):
     tf = TransferFunction.from_points([(0.0, 1, 1, 1, 0.0), (1.0, 1, 1, 1, 1.0)])

@@ -78,6 +78,7 @@ def test_linear_field_gradient_exact_and_saliency_uniform():
         assert float(s.max()) == pytest.approx(1.0, rel=1e-15)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 @pytest.mark.parametrize("value", [0.0, 0.37, 1.0])
 def test_constant_field_saliency_exactly_zero(dtype, value):
@@ -175,6 +176,7 @@ def test_hidden_detail_visible_from_one_side_only():
     np.testing.assert_array_equal(np.asarray(s), [1.0, 0.0, 1.0])
 
 
+@pytest.mark.slow
 def test_best_view_of_asymmetric_phantom():
     alpha = bumpy_cube()
     sal = saliency(obscurance(alpha, directions=icosphere(0), d_max=6.0))

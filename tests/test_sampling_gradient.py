@@ -109,6 +109,7 @@ def test_regression_gradient_against_central_differences_on_smooth_field():
     np.testing.assert_allclose(g[inner], exact[inner], atol=1e-2)
 
 
+@pytest.mark.slow
 def test_regression_gradient_dtype_jit_vmap_grad_and_errors():
     vol = jnp.asarray(np.random.default_rng(2).random((6, 6, 6)), jnp.float32)
     g = jax.jit(regression_gradient)(vol)

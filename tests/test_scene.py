@@ -59,6 +59,7 @@ def test_effects_that_are_off_are_not_traced(monkeypatch):
     assert sorted(calls) == ["ambient", "gradient"]
 
 
+@pytest.mark.slow
 def test_several_views_share_what_does_not_depend_on_the_view(monkeypatch):
     calls = []
     real_lao = scene_module.AMBIENT["lao"]
@@ -120,6 +121,7 @@ def test_leaves_set_to_python_floats_render():
         np.testing.assert_allclose(image, want, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_scene_is_a_pytree_for_jit_vmap_grad():
     cam = Camera.orbit(azimuth=15.0, image_shape=(4, 4))
     s = Scene(volume=_volume(), transfer=preset("grey"), shading="phong")
@@ -168,6 +170,7 @@ def test_scene_errors():
     assert isinstance(Scene(volume=_volume(), transfer=tf).phong, Phong)
 
 
+@pytest.mark.slow
 def test_lao_obscurance_saliency_and_importance_effects_match_their_kernels():
     vol = _volume()
     tf = preset("grey")
@@ -306,6 +309,7 @@ def test_importance_with_zero_weights_equals_standard_render():
     np.testing.assert_allclose(imp, std, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_fitting_leaves_get_gradients_without_recompiling():
     vol = _volume()
     cam = Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(3, 3))
@@ -354,6 +358,7 @@ def test_non_finite_parameters_are_refused_by_name(jit):
             jax.block_until_ready(render(scene, camera))
 
 
+@pytest.mark.slow
 def test_no_background_importance_is_allowed_with_a_focus():
     # -inf background importance is "no background" (volshade.composite); outside the
     # focus (weight 0) importance is off, which must give 0, not 0 * -inf = NaN
