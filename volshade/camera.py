@@ -133,10 +133,11 @@ class Camera(eqx.Module):
         """
         where = "volshade.Camera.orbit"
         dtype = jnp.result_type(float)
-        a, e, target, distance, fov, width = (
+        a, e, target, length, fov, width = (
             _checks.float_leaf(x, k, where).astype(dtype) for x, k in (
                 (azimuth, "azimuth"), (elevation, "elevation"), (target, "target"),
                 (distance, "distance"), (fov, "fov"), (width, "width")))
+        # on the input: under jit, even an array made from a Python number is traced
         dist = _checks.concrete(distance)
         if dist is not None and not np.all(dist > 0):
             raise ValueError(f"{where}: `distance` must be > 0 (scene units), got "
@@ -148,7 +149,7 @@ class Camera(eqx.Module):
         toward_azimuth = jnp.stack([jnp.zeros_like(a), -jnp.cos(a), -jnp.sin(a)])
         up = jnp.where(jnp.abs(jnp.sin(e)) > 1 - 1e-6, toward_azimuth * jnp.sign(jnp.sin(e)),
                        jnp.asarray([1.0, 0.0, 0.0], dtype))
-        return cls(target + distance * direction, target, up, fov, width,
+        return cls(target + length * direction, target, up, fov, width,
                    image_shape=image_shape, projection=projection)
 
     @classmethod

@@ -494,9 +494,10 @@ def fit(
     paths = tuple(named)
     # strongly typed, as constructors store them: jit caches a weakly typed start
     # (from a Python float) apart, and would compile the solver again
-    initial = [jnp.array(x, dtype=x.dtype) for x in
-               (_checks.float_leaf(leaf, path, _WHERE) for leaf, path in zip(leaves, named,
-                                                                            strict=True))]
+    initial = []
+    for leaf, path in zip(leaves, named, strict=True):
+        x = _checks.float_leaf(leaf, path, _WHERE)
+        initial.append(jnp.array(x, dtype=x.dtype))
     problem = _Problem(scene=eqx.tree_at(lambda s: [_at(s, p) for p in paths], scene, initial),
                        cameras=tuple(c for c, _, _ in views),
                        targets=tuple(t for _, t, _ in views),

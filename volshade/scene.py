@@ -257,9 +257,8 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
             message = (f"`{name}` contains NaN or inf; every scene and camera parameter "
                        f"must be finite{' (or -inf)' if minus_inf else ''}.")
             if isinstance(leaf, float):  # a static leaf (e.g. set with eqx.tree_at)
-                if not (math.isfinite(leaf) or (minus_inf and leaf == -math.inf)):
-                    raise ValueError(f"volshade.render: {message}")
-                return leaf
+                bad = not (math.isfinite(leaf) or (minus_inf and leaf == -math.inf))
+                return _checks.refuse(leaf, [(bad, message)], "volshade.render")
             if not eqx.is_inexact_array(leaf) or leaf is scene.volume:
                 return leaf
             ok = jnp.isfinite(leaf) | ((leaf == -jnp.inf) if minus_inf else False)
