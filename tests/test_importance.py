@@ -333,6 +333,29 @@ def test_focus_gaussian_values_and_gradients():
     assert np.all(np.isfinite(g))
 
 
+@pytest.mark.parametrize("radius", [1e-20, 1e-30])
+def test_focus_gaussian_gradient_finite_at_tiny_radius(radius):
+    # pixel (0, 0) lies exactly one radius from the centre, every other pixel past 40;
+    # d/dR exp(-d^2 / 2R^2) = exp(-1/2) / R there, although 1/R^2 overflows float32
+    # (where the plain quotient rule gave NaN)
+    def f(r, c):
+        return focus_weights((4, 4), center=c, radius=r, kind="gaussian")
+
+    r, center = jnp.asarray(radius), jnp.asarray([0.0, radius])
+    w = f(r, center)
+    np.testing.assert_allclose(w[0, 0], np.exp(-0.5), rtol=1e-12)
+    assert np.all(np.asarray(w).ravel()[1:] == 0)
+    g_r, g_c = jax.grad(lambda r, c: f(r, c).sum(), argnums=(0, 1))(r, center)
+    np.testing.assert_allclose(g_r, np.exp(-0.5) / radius, rtol=1e-12)
+    # moving the centre away from pixel (0, 0) lowers its weight
+    np.testing.assert_allclose(g_c, [0.0, -np.exp(-0.5) / radius], rtol=1e-12)
+    # float32 squares the tiny distance to 0 (pixel (0, 0) gets weight 1, slope 0), but
+    # the far pixels' slopes, 0 times an overflowing 1/R^2 before, stay finite
+    g32 = jax.grad(lambda r, c: f(r, c).sum(), argnums=(0, 1))(
+        r.astype(jnp.float32), center.astype(jnp.float32))
+    assert all(np.all(np.isfinite(g)) for g in g32)
+
+
 def test_focus_screen_door():
     w = focus_weights((64, 64), center=(32.0, 32.0), radius=8.0, kind="screen_door",
                       inside=1.0, outside=0.0)

@@ -22,6 +22,23 @@ def test_safe_div_singular_point():
     np.testing.assert_allclose(jax.grad(nm.safe_div, argnums=1)(3.0, 2.0), -0.75)
 
 
+def test_quotient_slopes_without_den_squared():
+    num, den = jnp.asarray([3.0, -1.5]), jnp.asarray([2.0, 0.25])
+    np.testing.assert_array_equal(nm.quotient(num, den), num / den)
+    for argnums in (0, 1):
+        np.testing.assert_allclose(
+            jax.jacfwd(nm.quotient, argnums)(num, den), jax.jacfwd(jnp.divide, argnums)(num, den),
+            rtol=1e-15)
+        np.testing.assert_allclose(
+            jax.jacrev(nm.quotient, argnums)(num, den), jax.jacrev(jnp.divide, argnums)(num, den),
+            rtol=1e-15)
+    # float32, den = 1e-20: den ** 2 overflows, the slope -num / den ** 2 = -1e20 does not
+    num32, den32 = jnp.float32(1e-20), jnp.float32(1e-20)
+    assert float(jax.grad(jnp.divide, 1)(num32, den32)) == -np.inf
+    np.testing.assert_allclose(jax.grad(nm.quotient, 1)(num32, den32), -1e20, rtol=1e-6)
+    np.testing.assert_allclose(jax.grad(nm.quotient)(num32, den32), 1e20, rtol=1e-6)
+
+
 def test_safe_log_and_log1m():
     assert float(nm.safe_log(0.0)) == -np.inf
     assert float(jax.grad(nm.safe_log)(0.0)) == 0.0

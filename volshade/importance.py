@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import safe_div, safe_norm, safe_normalize, safe_pow, smoothstep
+from ._numerics import quotient, safe_norm, safe_normalize, safe_pow, smoothstep
 from ._types import Array, ArrayLike, Float
 from .gradient import gradient_magnitude
 
@@ -434,7 +434,11 @@ def _circular(dist, radius, rows, cols):
 
 
 def _gaussian(dist, radius, rows, cols):
-    return jnp.exp(-0.5 * jnp.square(safe_div(dist, radius)))
+    # past 40 radii exp(-800) is 0 even in float64; cutting there (with a zero gradient)
+    # keeps dist / radius, and its slope in radius, finite for the tiniest radius
+    far = dist > 40 * radius
+    ratio = quotient(jnp.where(far, jnp.zeros_like(dist), dist), radius)
+    return jnp.where(far, jnp.zeros_like(dist), jnp.exp(-0.5 * jnp.square(ratio)))
 
 
 def _screen_door(dist, radius, rows, cols):
