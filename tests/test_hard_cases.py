@@ -456,6 +456,31 @@ def test_colour_bleeding_without_occluders_is_the_ambient_colour():
     np.testing.assert_allclose(np.asarray(g_amb), np.full(3, np.prod(shape)), rtol=1e-14)
 
 
+@pytest.mark.parametrize("rho", ["linear", "exponential", "sqrt"])
+def test_obscurance_d_max_gradient_below_a_voxel_is_zero_not_nan(rho):
+    # d_max below one voxel: nothing is near enough to occlude, so O = 1 and dO/dd_max = 0;
+    # float32 squared d_max = 1e-20 to 0 in the slope of rho(d_max, d_max), which the
+    # unoccluded directions compute and discard (0 * inf was NaN)
+    density = jnp.asarray(np.random.default_rng(3).uniform(0, 1, (4, 5, 3)), jnp.float32)
+    for d_max in (0.5, 1e-20):
+        out, grad = jax.value_and_grad(lambda m: jnp.sum(
+            obscurance(density, directions=DIRS12, d_max=m, rho=rho)))(jnp.float32(d_max))
+        assert float(out) == density.size and float(grad) == 0.0
+
+
+@pytest.mark.parametrize("gap", [1e-3, 1e-20])
+def test_threshold_gradients_with_nearly_equal_low_and_high(gap):
+    # ramp (o - low) / (high - low) between them: d/dlow = (o - high) / gap^2 and
+    # d/dhigh = -(o - low) / gap^2 there, 0 elsewhere; finite in float32 although gap^2
+    # underflows (0 * inf was NaN for the values outside the ramp)
+    o = jnp.asarray([0.0, 0.3 * gap, 0.5, 0.9], jnp.float32)
+    g_low, g_high = jax.grad(lambda lo, hi: jnp.sum(vs.threshold(o, lo, hi)), (0, 1))(
+        jnp.float32(0.0), jnp.float32(gap))
+    # the value 0 sits on `low`, inside the ramp (0 there): slopes -1/gap and 0
+    want_low = (0.3 * gap - gap) / gap**2 - 1 / gap
+    np.testing.assert_allclose([g_low, g_high], [want_low, -0.3 / gap], rtol=1e-5)
+
+
 # =========================================================================== saliency
 
 

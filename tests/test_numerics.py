@@ -37,6 +37,14 @@ def test_quotient_slopes_without_den_squared():
     assert float(jax.grad(jnp.divide, 1)(num32, den32)) == -np.inf
     np.testing.assert_allclose(jax.grad(nm.quotient, 1)(num32, den32), -1e20, rtol=1e-6)
     np.testing.assert_allclose(jax.grad(nm.quotient)(num32, den32), 1e20, rtol=1e-6)
+    # safe_div and smoothstep differentiate through it: edges 1e-20 apart in float32
+    np.testing.assert_allclose(jax.grad(nm.safe_div, 1)(num32, den32), -1e20, rtol=1e-6)
+    x = jnp.asarray([0.0, 3e-21, 0.5], jnp.float32)
+    g0, g1 = jax.grad(lambda e0, e1: jnp.sum(nm.smoothstep(e0, e1, x)), (0, 1))(
+        jnp.float32(0.0), den32)
+    # t = x / e1 = 0.3 at 3e-21: d/de1 = -6 t (1 - t) t / e1, d/de0 = 6 t (1 - t) (t - 1) / e1
+    np.testing.assert_allclose([g0, g1], [6 * 0.21 * -0.7 / 1e-20, -6 * 0.21 * 0.3 / 1e-20],
+                               rtol=1e-5)
 
 
 def test_safe_log_and_log1m():

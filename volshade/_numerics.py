@@ -24,14 +24,6 @@ def eps(x: ArrayLike) -> Array:
     return jnp.asarray(jnp.finfo(jnp.result_type(x, jnp.float32)).eps, jnp.result_type(x))
 
 
-def safe_div(num: ArrayLike, den: ArrayLike) -> Array:
-    """``num / den`` where ``den != 0``, and 0 (with zero gradient) where ``den == 0``."""
-    num, den = jnp.asarray(num), jnp.asarray(den)
-    nonzero = den != 0
-    safe_den = jnp.where(nonzero, den, jnp.ones_like(den))
-    return jnp.where(nonzero, num / safe_den, jnp.zeros_like(num / safe_den))
-
-
 @jax.custom_jvp
 def quotient(num: ArrayLike, den: ArrayLike) -> Array:
     """``num / den`` for ``den != 0``, differentiated as ``(dnum - q dden) / den``.
@@ -48,6 +40,16 @@ def _quotient_jvp(primals, tangents):
     (num, den), (dnum, dden) = primals, tangents
     q = quotient(num, den)
     return q, (dnum - q * dden) / den
+
+
+def safe_div(num: ArrayLike, den: ArrayLike) -> Array:
+    """``num / den`` where ``den != 0``, and 0 (with zero gradient) where ``den == 0``;
+    differentiated as :func:`quotient`."""
+    num, den = jnp.asarray(num), jnp.asarray(den)
+    nonzero = den != 0
+    safe_den = jnp.where(nonzero, den, jnp.ones_like(den))
+    q = quotient(num, safe_den)
+    return jnp.where(nonzero, q, jnp.zeros_like(q))
 
 
 def safe_log(x: ArrayLike) -> Array:

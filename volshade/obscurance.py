@@ -74,7 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import safe_div, safe_normalize, safe_pow, safe_sqrt
+from ._numerics import quotient, safe_div, safe_normalize, safe_pow, safe_sqrt
 from ._types import Array, ArrayLike, Float
 from .directions import _check_level, icosphere_points
 
@@ -92,16 +92,21 @@ def _rho_ao(d: Array, d_max: Array) -> Array:
     return jnp.zeros_like(d)
 
 
+# d / d_max by `quotient`: the slope -d / d_max^2 of the plain quotient rule overflows
+# float32 for d_max below about 1e-19 voxels, and the unoccluded directions' discarded
+# rho(d_max, d_max) would multiply that inf by 0
+
+
 def _rho_linear(d: Array, d_max: Array) -> Array:
-    return safe_div(d, d_max)
+    return quotient(d, d_max)
 
 
 def _rho_exponential(d: Array, d_max: Array) -> Array:
-    return -jnp.expm1(-safe_div(d, d_max))
+    return -jnp.expm1(-quotient(d, d_max))
 
 
 def _rho_sqrt(d: Array, d_max: Array) -> Array:
-    return safe_sqrt(safe_div(d, d_max))
+    return safe_sqrt(quotient(d, d_max))
 
 
 #: The rho functions of section 3.2 (Figure 3), called as ``rho(d, d_max)`` for
