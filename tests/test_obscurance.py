@@ -295,6 +295,12 @@ def test_obscurance_shading_blinn_phong():
     np.testing.assert_allclose(np.asarray(rgb), np.asarray(out)[:, None] * np.ones(3), rtol=1e-14)
     jac = jax.jit(jax.jacrev(lambda x: obscurance_shading(x, light, view, obs, k_s=0.5)))(n)
     assert bool(jnp.all(jnp.isfinite(jac)))
+    # two-sided: the normal pointing away from the light is lit as the one towards it
+    both = obscurance_shading(n, light, view, obs, k_d=0.7, k_s=0.3, shininess=4.0,
+                              two_sided=True)
+    np.testing.assert_allclose(np.asarray(both), [want0, 2 * want0, 0.0, 2 * want0], rtol=1e-14)
+    with pytest.raises(TypeError, match="two_sided"):
+        obscurance_shading(n, light, view, obs, two_sided="yes")
 
 
 # ------------------------------------------------------------------ float32 against float64

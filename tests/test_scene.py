@@ -203,6 +203,26 @@ def test_lao_obscurance_saliency_and_importance_effects_match_their_kernels():
     assert not np.allclose(render(s, cam), march(vol, tf, cam), atol=1e-3)
 
 
+@pytest.mark.parametrize("shading", ["phong", "obscurance"])
+def test_lighting_does_not_depend_on_which_side_the_classification_takes(shading):
+    # one opaque ball, written as bright on dark and as dark on bright with the mirrored
+    # transfer function: the gradients point opposite ways, the picture is the same (a
+    # one-sided N.L left the second ball black under shading="obscurance")
+    x = jnp.arange(12) - 5.5
+    r = jnp.sqrt(x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)
+    ball = jnp.clip((4 - r) / 2 + 0.5, 0, 1)
+    bright = vs.TransferFunction.from_points([(0, 1, 1, 1, 0), (0.4, 1, 1, 1, 0),
+                                              (0.6, 1, 1, 1, 1), (1, 1, 1, 1, 1)])
+    dark = vs.TransferFunction.from_points([(0, 1, 1, 1, 1), (0.4, 1, 1, 1, 1),
+                                            (0.6, 1, 1, 1, 0), (1, 1, 1, 1, 0)])
+    cam = Camera.orbit(azimuth=30.0, elevation=20.0, image_shape=(8, 8))
+    images = [render(Scene(volume=v, transfer=tf, shading=shading, ambient="volume",
+                           ambient_volume=jnp.ones_like(ball)), cam)
+              for v, tf in ((ball, bright), (1 - ball, dark))]
+    assert float(images[0][4, 4, :3].min()) > 0.5
+    np.testing.assert_allclose(images[1], images[0], atol=1e-12)
+
+
 _PROFILE = np.random.default_rng(3).uniform(0.1, 0.95, 12)  # intensities along h
 _TABLE = np.array([[0.0, 0.1, 0.1, 0.1, 0.0], [0.3, 0.9, 0.2, 0.1, 0.35],
                    [1.0, 0.1, 0.3, 0.9, 0.25]])  # rows (x, r, g, b, opacity per 1 mm)

@@ -705,6 +705,7 @@ def obscurance_shading(
     k_d: Float[ArrayLike, ""] = 1.0,
     k_s: Float[ArrayLike, ""] = 0.0,
     shininess: Float[ArrayLike, ""] = 32.0,
+    two_sided: bool = False,
 ) -> Float[Array, "*batch"] | Float[Array, "*batch 3"]:
     r"""Blinn-Phong lighting scaled by the obscurance, eq. (5) of section 5.1.
 
@@ -714,7 +715,11 @@ def obscurance_shading(
     ``normal``, ``light`` and ``view`` are normalised here (a gradient can be
     passed as the normal); a zero vector stays zero, so a voxel with a zero
     normal gets $I = 0$, with finite gradients. Cosines are clamped at 0 (no
-    light from behind), and $0^n$ is 0 with a zero gradient.
+    light from behind), or with ``two_sided`` taken as $|N \cdot L|$ and
+    $|N \cdot H|$, as :class:`volshade.Scene`'s ``shading="obscurance"`` does: a
+    gradient's sign depends on the classification (a bright object and the same
+    object classified from its dark side have opposite gradients), so a one-sided
+    rule would leave one of them black. $0^n$ is 0 with a zero gradient.
 
     Args:
         normal: ``(..., 3)`` surface normals (or gradients), ``(d, h, w)``.
@@ -724,6 +729,8 @@ def obscurance_shading(
         k_d: diffuse coefficient.
         k_s: specular coefficient.
         shininess: Phong exponent $n$ (> 0).
+        two_sided: light both sides of the surface (static; default ``False``, the
+            paper's form).
 
     Returns:
         ``(...)`` or ``(..., 3)`` intensity, in the dtype of ``normal``.
@@ -768,7 +775,8 @@ def obscurance_shading(
                                            (shininess, "shininess")))
     shininess = _checks.refuse(shininess, [(~(shininess > 0), "`shininess` must be > 0.")],
                                where)
-    return _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess)
+    two_sided = _checks.flag(two_sided, "two_sided", where)
+    return _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess, two_sided)
 
 
 def _broadcasts(shape: tuple, target: tuple) -> bool:
@@ -778,7 +786,8 @@ def _broadcasts(shape: tuple, target: tuple) -> bool:
         return False
 
 
-def _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess):
+def _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess,
+                        two_sided: bool = False):
     """:func:`obscurance_shading` without its checks, for the renderer's per-sample
     shader (whose inputs come from a checked volume: a run-time check at every step of
     the march would cost a host round trip on a GPU)."""
@@ -789,8 +798,9 @@ def _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess):
     n = safe_normalize(normal)
     light_dir = safe_normalize(light)
     half = safe_normalize(light_dir + safe_normalize(view))
-    n_dot_l = jnp.maximum(jnp.sum(n * light_dir, axis=-1), 0)
-    n_dot_h = jnp.maximum(jnp.sum(n * half, axis=-1), 0)
+    cosine = jnp.abs if two_sided else (lambda c: jnp.maximum(c, 0))
+    n_dot_l = cosine(jnp.sum(n * light_dir, axis=-1))
+    n_dot_h = cosine(jnp.sum(n * half, axis=-1))
     k_d, k_s, shininess = (jnp.asarray(v, dtype) for v in (k_d, k_s, shininess))
     local = k_d * n_dot_l + k_s * safe_pow(n_dot_h, shininess)
     return local * obscurance if obscurance.shape == batch else local[..., None] * obscurance

@@ -70,7 +70,7 @@ def march(
         camera: the view.
         spacing: voxel size ``(sd, sh, sw)`` in mm.
         step: sample distance in mm (static: it sets the number of samples).
-        shading: ``"none"`` or ``"phong"`` (see :mod:`volshade.shading`).
+        shading: ``"none"``, ``"phong"`` or ``"obscurance"`` (see :mod:`volshade.shading`).
         phong: Blinn--Phong coefficients (default :class:`~volshade.shading.Phong`).
         ambient: optional ``(D, H, W)`` or ``(D, H, W, 3)`` ambient factor in
             [0, 1] (ambient occlusion, obscurance), sampled trilinearly.

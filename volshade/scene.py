@@ -134,7 +134,7 @@ class Scene(eqx.Module):
         saliency: :class:`~volshade.saliency.SaliencyModulation` parameters.
         shading: ``"none"`` (emission-absorption), ``"phong"`` (Blinn--Phong with
             the ambient term) or ``"obscurance"`` (eq. 5 of Ruiz et al.: all local
-            lighting scaled by the ambient volume).
+            lighting scaled by the ambient volume; two-sided, like ``"phong"``).
         phong: Blinn--Phong coefficients.
         composition: ``"standard"`` or ``"importance"`` (importance-aware, with
             ``importance`` and optional per-ray ``focus`` weights).

@@ -103,12 +103,13 @@ def unlit(color, gradient, light, view, ambient, params):
 
 
 def obscurance_lit(color, gradient, light, view, ambient, params):
-    r"""Eq. 5 of Ruiz et al. 2008: $c\,(k_d N\cdot L + k_s (N\cdot H)^n)\, O(x)$, the whole
-    local lighting scaled by the (grey or RGB) obscurance passed as ``ambient``."""
+    r"""Eq. 5 of Ruiz et al. 2008, two-sided like :func:`blinn_phong`:
+    $c\,(k_d |N\cdot L| + k_s |N\cdot H|^n)\, O(x)$, the whole local lighting scaled by
+    the (grey or RGB) obscurance passed as ``ambient``."""
     obs = jnp.broadcast_to(ambient, color.shape)
     return color * _obscurance_shading(-gradient, jnp.asarray(light, color.dtype),
                                        jnp.asarray(view, color.dtype), obs, params.diffuse,
-                                       params.specular, params.shininess)
+                                       params.specular, params.shininess, two_sided=True)
 
 
 class Shader(NamedTuple):
