@@ -419,6 +419,9 @@ def test_camera_geometry_and_png(tmp_path):
     assert grey.shape == (3, 4) and grey[0, 0] == 0 and grey[-1, -1] == 255
     with pytest.raises(ValueError, match=r"must be \(H, W\), \(H, W, 3\) or"):
         save_png(tmp_path / "x.png", jnp.ones((2, 2, 2)))
+    # an 8-bit image is refused, not clipped to 0 and 1 of 255
+    with pytest.raises(TypeError, match="floating point.*img_as_float"):
+        save_png(tmp_path / "x.png", np.full((2, 2, 3), 255, np.uint8))
 
 
 def test_intersect_box_matches_the_numpy_slab_method():
