@@ -60,6 +60,22 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     (lambda: vs.LocalAmbientOcclusion(-1.0), ValueError, "radius` must be .* got -1.0"),
     (lambda: vs.LocalAmbientOcclusion(1.0), ValueError, r"`radius` \(1.0\) must be > `offset`"),
     (lambda: vs.LocalAmbientOcclusion(4.0, offset=-1.0), ValueError, "`offset` must be"),
+    # the options lao() refuses, refused when the module is built, not at its first call
+    (lambda: vs.LocalAmbientOcclusion(3.0, opacity_correction="no"), TypeError,
+     "`opacity_correction` must be True or False"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, brick_size=0), ValueError, "`brick_size` must be >= 1"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, brick_size=4.0), TypeError, "`brick_size` must be"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, max_radius=2.0), ValueError,
+     r"`radius` \(3.0\) exceeds `max_radius` \(2.0\)"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, max_radius="5"), TypeError, "`max_radius` must be"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, directions=12, weights=jnp.ones(3)), ValueError,
+     r"`weights` must have shape \(L,\) = \(12,\)"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, directions=vs.directions.icosphere(0).T), ValueError,
+     r"`directions` must have shape \(L, 3\)"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, directions=0), ValueError, "`directions` must be >= 1"),
+    (lambda: vs.lao(jnp.zeros((4, 4, 4)), directions=6, radius="3"), TypeError,
+     "`radius` must be a number"),
+    (lambda: vs.Scene(volume=VOL, transfer=TF, step="0.5"), TypeError, "`step` must be a number"),
     (lambda: vs.Focus(radius=0.0), ValueError, "`radius` must be > 0 .*image height"),
     (lambda: vs.Importance(darkening=-10.0), ValueError, "`darkening` must be >= 0"),
     (lambda: vs.Importance(specular_exponent=-1.0), ValueError, "`specular_exponent` must be > 0"),
@@ -76,6 +92,10 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     (lambda: vs.IntervalFeature(0.2, "1"), TypeError, "IntervalFeature: `high`"),
     (lambda: vs.Camera.orbit(fov="30"), TypeError, "Camera.orbit: `fov`"),
     (lambda: vs.SphereClip(centre=(1.0, 2.0, None), radius=2.0), TypeError, "`centre`"),
+    (lambda: vs.BoxClip(centre=(6.0, 6.0, 6.0), half_size="2"), TypeError,
+     "BoxClip: `half_size` must be a real number"),
+    (lambda: vs.BoxClip(centre=(6.0, 6.0, 6.0), half_size=(1.0, 2.0)), ValueError,
+     r"`half_size` must be one number or three .* got shape \(2,\)"),
 ])
 def test_parameter_modules_refuse_bad_values_at_construction(build, exc, match):
     with pytest.raises(exc, match=match):

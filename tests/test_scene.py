@@ -167,6 +167,17 @@ def test_scene_errors():
         Scene(volume=_volume(), transfer=tf, focus=Focus())
     with pytest.raises(ValueError, match="background"):
         Scene(volume=_volume(), transfer=tf, background=(0.0, 0.0))
+    # effect parameters of the wrong kind, named here rather than failing inside the render
+    for name, value, kind in (("lao", 6.0, "LocalAmbientOcclusion"),
+                              ("importance", 2.0, "Importance"),
+                              ("obscurance", 16.0, "ObscuranceParams"),
+                              ("phong", {"ambient": 0.2}, "Phong"),
+                              ("saliency", None, "SaliencyModulation"),
+                              ("focus", (0.5, 0.5), "Focus")):
+        with pytest.raises(TypeError, match=f"`{name}` must be a volshade.{kind}, got"):
+            Scene(volume=_volume(), transfer=tf, composition="importance", **{name: value})
+    with pytest.raises(TypeError, match="`scene` must be a volshade.Scene, got ArrayImpl; wrap"):
+        render(_volume(), Camera.orbit(image_shape=(4, 4)))
     assert isinstance(Scene(volume=_volume(), transfer=tf).phong, Phong)
 
 

@@ -159,7 +159,7 @@ def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:
 
 def positive_float(value: Any, name: str, where: str) -> float:
     """A static float option ``> 0``."""
-    if isinstance(value, bool | np.bool_):
+    if isinstance(value, bool | np.bool_ | str | bytes):  # float("0.5") would pass
         raise TypeError(f"{where}: `{name}` must be a number, got {value!r}.")
     try:
         out = float(value)

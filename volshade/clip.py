@@ -140,7 +140,11 @@ class BoxClip(Clip):
                  rotation: ArrayLike | None = None):
         where = "volshade.BoxClip"
         self.centre, self.rotation = _pose(centre, rotation, where)
-        self.half_size = _positive(jnp.broadcast_to(jnp.asarray(half_size, float), (3,)),
+        half_size = _checks.float_leaf(half_size, "half_size", where)
+        if half_size.shape not in ((), (3,)):
+            raise ValueError(f"{where}: `half_size` must be one number or three (d, h, w), "
+                             f"in voxels, got shape {half_size.shape}.")
+        self.half_size = _positive(jnp.broadcast_to(half_size.astype(float), (3,)),
                                    "half_size", where)
 
     def _local_distance(self, u, v, w):

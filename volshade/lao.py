@@ -602,7 +602,7 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
 
 
 def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
-    if isinstance(value, bool | np.bool_):
+    if isinstance(value, bool | np.bool_ | str | bytes):
         raise TypeError(f"{where}: `{name}` must be a number (voxels), got {value!r}.")
     try:
         arr = jnp.asarray(value, dtype=dtype)
@@ -613,6 +613,15 @@ def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
         raise ValueError(f"{where}: `{name}` must be a scalar (voxels), got shape "
                          f"{arr.shape}; for several values use `jax.vmap`.")
     return arr
+
+
+def _weights_array(weights, n_dirs: int, where: str) -> Array:
+    """``weights`` as a float array, one per direction (trace-time shape check)."""
+    weights = _checks.as_float_array(weights, "weights", where)
+    if weights.shape != (n_dirs,):
+        raise ValueError(f"{where}: `weights` must have shape (L,) = ({n_dirs},), one "
+                         f"per direction, got {tuple(weights.shape)}.")
+    return weights
 
 
 class _Prepared(NamedTuple):
@@ -674,10 +683,7 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     if weights is None:
         weights = jnp.full((n_dirs,), 1 / n_dirs, dtype)
     else:
-        weights = _checks.as_float_array(weights, "weights", where).astype(dtype)
-        if weights.shape != (n_dirs,):
-            raise ValueError(f"{where}: `weights` must have shape (L,) = ({n_dirs},), one "
-                             f"per direction, got {tuple(weights.shape)}.")
+        weights = _weights_array(weights, n_dirs, where).astype(dtype)
         total = jnp.sum(weights)
         weights = _checks.refuse(
             weights, [(~jnp.all(jnp.isfinite(weights)) | jnp.any(weights < 0) | ~(total > 0),
@@ -874,14 +880,24 @@ class LocalAmbientOcclusion(eqx.Module):
             (~(self.radius > self.offset),
              f"`radius` ({radius!r}) must be > `offset` ({offset!r}); increase the radius "
              f"or lower the offset (default 1 voxel).")], where, traced=False)
+        # the options lao() checks, checked here too: stored unchecked, they would fail
+        # only at the first call, perhaps deep inside a jit
+        n_dirs = _directions_array(directions, jnp.result_type(float), where).shape[0]
         if isinstance(directions, int | np.integer) and not isinstance(directions, bool):
             directions = _directions.fibonacci(int(directions))
         self.directions = jnp.asarray(directions)
-        self.weights = None if weights is None else jnp.asarray(weights)
+        self.weights = None if weights is None else _weights_array(weights, n_dirs, where)
         self.samples = _checks.positive_int(samples, "samples", where)
-        self.opacity_correction = bool(opacity_correction)
-        self.brick_size = brick_size
-        if max_radius is None and not isinstance(radius, jax.core.Tracer):
+        self.opacity_correction = _checks.flag(opacity_correction, "opacity_correction", where)
+        self.brick_size = (None if brick_size is None
+                           else _checks.positive_int(brick_size, "brick_size", where))
+        if max_radius is not None:
+            max_radius = _checks.positive_float(max_radius, "max_radius", where)
+            _checks.refuse(self.radius, [(self.radius > max_radius,
+                                          f"`radius` ({radius!r}) exceeds `max_radius` "
+                                          f"({max_radius}); raise `max_radius`.")],
+                           where, traced=False)
+        elif not isinstance(radius, jax.core.Tracer):
             max_radius = 2 * float(np.max(np.asarray(radius)))
         self.max_radius = max_radius
         _checks.option(implementation, _IMPLEMENTATIONS, "implementation", where)

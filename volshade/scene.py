@@ -187,6 +187,14 @@ class Scene(eqx.Module):
             raise TypeError(f"{_WHERE}: `transfer` must be a volshade.TransferFunction, "
                             f"got {type(self.transfer).__name__}.")
         _checks.positive_float(self.step, "step", _WHERE)
+        # a number or a dict in their place would fail only inside the render, unnamed
+        for name, kind in (("lao", LocalAmbientOcclusion), ("obscurance", ObscuranceParams),
+                           ("saliency", SaliencyModulation), ("phong", Phong),
+                           ("importance", Importance), ("focus", Focus)):
+            value = getattr(self, name)
+            if not (isinstance(value, kind) or name == "focus" and value is None):
+                raise TypeError(f"{_WHERE}: `{name}` must be a volshade.{kind.__name__}, got "
+                                f"{type(value).__name__}.")
         _checks.option(self.ambient, AMBIENT, "ambient", _WHERE)
         _checks.option(self.modulation, MODULATION, "modulation", _WHERE)
         _checks.option(self.shading, SHADERS, "shading", _WHERE)
@@ -342,6 +350,10 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
         >>> [image.shape for image in render(scene, views)]
         [(8, 8, 4), (8, 8, 4), (8, 8, 4)]
     """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"volshade.render: `scene` must be a volshade.Scene, got "
+                        f"{type(scene).__name__}; wrap a volume as "
+                        f"volshade.Scene(volume=..., transfer=...).")
     _check_cameras(camera)
     scene, camera = _finite_parameters(scene, camera)
     cameras = [camera] if isinstance(camera, Camera) else list(camera)
