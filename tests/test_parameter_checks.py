@@ -46,6 +46,20 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     assert float(g_int.obscurance.d_max) == float(g_float.obscurance.d_max) != 0.0
 
 
+def test_nested_lists_become_arrays():
+    # as a user types them: lists, ints among floats
+    tf = vs.TransferFunction([0, 1], [[0, 0, 0], [1, 1, 1]], [0.0, 0.5])
+    assert all(isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.floating)
+               for x in (tf.points, tf.colors, tf.opacities))
+    vol = jnp.linspace(0, 1, 64).reshape(4, 4, 4)
+    listed = vs.Scene(volume=vol, transfer=tf, ambient="volume",
+                      ambient_volume=np.full((4, 4, 4), 0.5).tolist())
+    assert isinstance(listed.ambient_volume, jax.Array)
+    arrayed = eqx.tree_at(lambda s: s.ambient_volume, listed, jnp.full((4, 4, 4), 0.5))
+    cam = vs.Camera.orbit(image_shape=(4, 4))
+    np.testing.assert_array_equal(vs.render(listed, cam), vs.render(arrayed, cam))
+
+
 @pytest.mark.parametrize("build, exc, match", [
     (lambda: vs.ObscuranceParams(d_max=-1.0), ValueError, "d_max"),
     (lambda: vs.ObscuranceParams(low=0.9, high=0.1), ValueError, "`low` must be <= `high`"),
@@ -92,6 +106,10 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     (lambda: vs.IntervalFeature(0.2, "1"), TypeError, "IntervalFeature: `high`"),
     (lambda: vs.Camera.orbit(fov="30"), TypeError, "Camera.orbit: `fov`"),
     (lambda: vs.SphereClip(centre=(1.0, 2.0, None), radius=2.0), TypeError, "`centre`"),
+    (lambda: vs.Camera.orbit(target=(0.0, 0.0)), ValueError,
+     r"Camera.orbit: `target` must be a point \(d, h, w\), got shape \(2,\)"),
+    (lambda: vs.TransferFunction([0.0, 1.0], "white", [0.0, 1.0]), TypeError,
+     "TransferFunction: `colors` must be a real number"),
     (lambda: vs.BoxClip(centre=(6.0, 6.0, 6.0), half_size="2"), TypeError,
      "BoxClip: `half_size` must be a real number"),
     (lambda: vs.BoxClip(centre=(6.0, 6.0, 6.0), half_size=(1.0, 2.0)), ValueError,

@@ -137,6 +137,9 @@ class Camera(eqx.Module):
             _checks.float_leaf(x, k, where).astype(dtype) for x, k in (
                 (azimuth, "azimuth"), (elevation, "elevation"), (target, "target"),
                 (distance, "distance"), (fov, "fov"), (width, "width")))
+        if target.shape != (3,):
+            raise ValueError(f"{where}: `target` must be a point (d, h, w), got shape "
+                             f"{target.shape}.")
         # on the input: under jit, even an array made from a Python number is traced
         dist = _checks.concrete(distance)
         if dist is not None and not np.all(dist > 0):

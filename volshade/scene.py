@@ -165,7 +165,8 @@ class Scene(eqx.Module):
                                                     converter=lambda s: _checks.spacing(s, _WHERE))
     step: float = eqx.field(static=True, default=0.5)
     ambient: str = eqx.field(static=True, default="none")
-    ambient_volume: Array | None = None
+    ambient_volume: Array | None = eqx.field(
+        default=None, converter=lambda v: None if v is None else _as_array(v))
     lao: LocalAmbientOcclusion = eqx.field(default_factory=LocalAmbientOcclusion)
     feature_ao: FeatureAmbientOcclusion | None = None
     obscurance: ObscuranceParams = eqx.field(default_factory=ObscuranceParams)

@@ -60,9 +60,9 @@ class TransferFunction(eqx.Module):
         0.25
     """
 
-    points: Float[Array, " K"]
-    colors: Float[Array, "K 3"]
-    opacities: Float[Array, " K"]
+    points: Float[Array, " K"] = eqx.field(converter=_checks.leaf(_WHERE, "points"))
+    colors: Float[Array, "K 3"] = eqx.field(converter=_checks.leaf(_WHERE, "colors"))
+    opacities: Float[Array, " K"] = eqx.field(converter=_checks.leaf(_WHERE, "opacities"))
     step0: float = eqx.field(static=True, default=1.0)
 
     def __check_init__(self):
@@ -267,6 +267,7 @@ def feature_opacities(
     base_opacity = None  # classified once for all the intervals
     for i, feature in enumerate(features):
         if isinstance(feature, TransferFunction):
+            _check_feature_range(feature, volume, i, where)
             out.append(feature.opacity(volume, step=step))
             continue
         if base is None:
@@ -276,6 +277,22 @@ def feature_opacities(
             base_opacity = base.opacity(volume, step=step)
         out.append(feature._select(volume, base_opacity))
     return jnp.stack(out)
+
+
+def _check_feature_range(feature: TransferFunction, volume: Array, i: int, where: str) -> None:
+    """Refuse, when known, a feature whose control points do not span the volume (the
+    natural way to write a band stops at its edges); ``opacity`` checks traced values."""
+    points = _checks.concrete(feature.points.astype(volume.dtype))
+    known = _checks.concrete(volume)
+    if points is None or known is None:
+        return
+    low, high = float(np.min(known)), float(np.max(known))
+    if low < points[0] or high > points[-1]:
+        raise ValueError(
+            f"{where}: features[{i}]'s control points span [{points[0]:g}, {points[-1]:g}], "
+            f"but `volume` holds values in [{low:g}, {high:g}], which it would classify like "
+            f"its end points; add control points at the volume's ends (opacity 0 outside the "
+            f"band), or select the band with volshade.IntervalFeature(low, high) and `base=`.")
 
 
 def _preset_grey() -> TransferFunction:
