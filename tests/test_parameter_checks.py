@@ -108,6 +108,10 @@ def test_nested_lists_become_arrays():
     (lambda: vs.SphereClip(centre=(1.0, 2.0, None), radius=2.0), TypeError, "`centre`"),
     (lambda: vs.Camera.orbit(target=(0.0, 0.0)), ValueError,
      r"Camera.orbit: `target` must be a point \(d, h, w\), got shape \(2,\)"),
+    (lambda: vs.Focus(radius=jnp.array([0.1, 0.2])).weights((8, 8)), ValueError,
+     r"volshade.Focus: `radius` must be a scalar, got shape \(2,\)"),
+    (lambda: vs.Camera.orbit(target=(0.0, jnp.inf, 0.0)), ValueError,
+     "Camera.orbit: `target` must be finite"),
     (lambda: vs.TransferFunction([0.0, 1.0], "white", [0.0, 1.0]), TypeError,
      "TransferFunction: `colors` must be a real number"),
     (lambda: vs.BoxClip(centre=(6.0, 6.0, 6.0), half_size="2"), TypeError,
@@ -222,8 +226,15 @@ def test_saliency_errors_name_saliency_and_the_argument():
         vs.saliency(jnp.zeros((0, 4, 4)))
     with pytest.raises(ValueError, match="most_salient_view: `saliency` and `opacity`"):
         vs.most_salient_view(DENSITY, DENSITY[:, :, :4], icosphere(0))
-    with pytest.raises(ValueError, match="modulate_opacity|opacity_factor"):
+    # named after the function called, not the helper that checks
+    with pytest.raises(ValueError, match="saliency.modulate_opacity: `threshold`"):
         vs.modulate_opacity(DENSITY, DENSITY, threshold=jnp.array([0.1, 0.2]))
+    with pytest.raises(ValueError, match="saliency.modulate_opacity: `boost_top`"):
+        vs.modulate_opacity(DENSITY, DENSITY, boost_top=2)
+    with pytest.raises(TypeError, match="saliency.modulate_opacity: `multiply` must be True or"):
+        vs.modulate_opacity(DENSITY, DENSITY, multiply="no")
+    with pytest.raises(ValueError, match="saliency.opacity_factor: `threshold`"):
+        opacity_factor(DENSITY, threshold=jnp.array([0.1, 0.2]))
     with pytest.raises(ValueError, match="projected_area: `level` must be a scalar"):
         vs.projected_area(DENSITY, icosphere(0), level=jnp.array([0.1, 0.2]))
 

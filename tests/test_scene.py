@@ -365,6 +365,9 @@ def test_non_finite_parameters_are_refused_by_name(jit):
     render = eqx.filter_jit(vs.render) if jit else vs.render
     with pytest.raises(ValueError, match="`diffuse` must be a finite number"):
         vs.Phong(diffuse=jnp.nan)  # known values: refused at construction
+    with pytest.raises(ValueError, match="Camera.orbit: `azimuth` must be finite, got nan"):
+        vs.Camera.orbit(azimuth=float("nan"))
+    nan_eye = eqx.tree_at(lambda c: c.eye, cam, jnp.full(3, jnp.nan))  # as a fit could set it
     phong_scene = vs.Scene(volume=vol, transfer=tf, shading="phong")
     cases = [
         # a NaN that skipped construction (a fit, eqx.tree_at): refused at render
@@ -372,8 +375,7 @@ def test_non_finite_parameters_are_refused_by_name(jit):
          cam, "scene.phong.diffuse"),
         (vs.Scene(volume=vol, transfer=tf, background=(jnp.inf, 0.0, 0.0)), cam,
          "scene.background"),
-        (vs.Scene(volume=vol, transfer=tf),
-         vs.Camera.orbit(azimuth=jnp.nan, elevation=20, image_shape=(6, 6)), "camera.eye"),
+        (vs.Scene(volume=vol, transfer=tf), nan_eye, "camera.eye"),
         # -inf is allowed only where Importance declares it (the background), never +inf
         (vs.Scene(volume=vol, transfer=tf, composition="importance",
                   importance=Importance(background=jnp.inf)), cam, "scene.importance.background"),
@@ -381,7 +383,7 @@ def test_non_finite_parameters_are_refused_by_name(jit):
                   importance=Importance(intensity=-jnp.inf)), cam, "scene.importance.intensity"),
     ]
     cases.append((vs.Scene(volume=vol, transfer=tf),  # one of several views
-                  [cam, vs.Camera.orbit(azimuth=jnp.nan, image_shape=(6, 6))], "camera[1].eye"))
+                  [cam, nan_eye], "camera[1].eye"))
     nan_float = eqx.tree_at(lambda s: s.phong.diffuse, cases[0][0], float("nan"))
     cases.append((nan_float, cam, "scene.phong.diffuse"))  # a Python float leaf
     for scene, camera, name in cases:

@@ -556,6 +556,11 @@ class Focus(eqx.Module):
 
     def weights(self, image_shape: tuple[int, int]) -> Float[Array, "H W"]:
         """Per-ray weights for an image of ``image_shape`` (:func:`focus_weights`)."""
+        for name in ("radius", "inside", "outside"):  # (one Focus: vmap a batch of them)
+            if jnp.shape(getattr(self, name)) != ():
+                raise ValueError(f"volshade.Focus: `{name}` must be a scalar, got shape "
+                                 f"{jnp.shape(getattr(self, name))}; for several, vmap over "
+                                 f"a Focus built with a batch axis.")
         h, w = image_shape
         center = self.center * jnp.asarray([h, w], self.center.dtype) - 0.5
         return focus_weights(image_shape, center=center, radius=self.radius * h, kind=self.kind,

@@ -412,8 +412,7 @@ def modulate_opacity(
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same shape, got "
                          f"{saliency.shape} and {opacity.shape}.")
-    factor = opacity_factor(saliency, threshold=threshold, multiply=multiply,
-                            boost_top=boost_top)
+    factor = _opacity_factor(saliency, threshold, multiply, boost_top, where)
     return jnp.minimum(opacity * factor, 1)
 
 
@@ -429,12 +428,19 @@ def opacity_factor(
     $f = 0$ where $S <$ ``threshold``, else $b\, S^m$ ($b$, $m$ as in
     :func:`modulate_opacity`). The renderer multiplies interpolated opacities by it.
     """
+    return _opacity_factor(saliency, threshold, multiply, boost_top,
+                           "volshade.saliency.opacity_factor")
+
+
+def _opacity_factor(saliency, threshold, multiply, boost_top, where: str) -> Array:
+    """:func:`opacity_factor`, its errors naming ``where`` (the function called)."""
     dtype = saliency.dtype
-    boost_top = _boost_top(boost_top, "volshade.opacity_factor")
-    threshold = _checks.scalar(threshold, "threshold", "volshade.opacity_factor")
+    boost_top = _boost_top(boost_top, where)
+    multiply = _checks.flag(multiply, "multiply", where)
+    threshold = _checks.scalar(threshold, "threshold", where)
     threshold = _checks.refuse(threshold.astype(dtype), [
         (~jnp.isfinite(threshold), "`threshold` must be a finite saliency level (0.2 in the "
-                                   "paper).")], "volshade.opacity_factor")
+                                   "paper).")], where)
     factor = saliency if multiply else jnp.ones_like(saliency)
     if boost_top is not None:
         top = saliency >= 1 - jnp.asarray(boost_top, dtype)
