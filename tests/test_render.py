@@ -390,6 +390,14 @@ def test_camera_from_a_view_direction():
         if abs(elevation) < 90:  # along d the azimuth (the image's roll) is taken as 0
             np.testing.assert_allclose(np.asarray(cam.rays()[1]), np.asarray(orbit.rays()[1]),
                                        atol=1e-12)
+    # a view in voxel index space, with 4 x 1 x 1 mm voxels: (1, 1, 0) is arctan 4 above h
+    cam = Camera.from_view(jnp.array([1.0, 1.0, 0.0]), spacing=(4.0, 1.0, 1.0))
+    eye = np.asarray(cam.eye - cam.target)
+    np.testing.assert_allclose(np.degrees(np.arctan2(eye[0], eye[1])), np.degrees(np.arctan(4.0)),
+                               rtol=1e-12)
+    assert abs(eye[2]) < 1e-12
+    with pytest.raises(ValueError, match="spacing"):
+        Camera.from_view(jnp.array([1.0, 1.0, 0.0]), spacing=(4.0, -1.0, 1.0))
     # lists and an int image size are accepted, as elsewhere in the API
     cam = Camera(eye=[2.0, 0.0, 0.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0], fov=30.0,
                  width=1.0, image_shape=5)

@@ -164,13 +164,18 @@ class Camera(eqx.Module):
                    image_shape=image_shape, projection=projection)
 
     @classmethod
-    def from_view(cls, view, **orbit_kwargs) -> "Camera":
+    def from_view(cls, view, *, spacing=(1.0, 1.0, 1.0), **orbit_kwargs) -> "Camera":
         """:meth:`orbit` camera whose eye lies along ``view`` from the target.
 
         ``view`` is a ``(3,)`` direction from the volume towards the viewer in
         ``(d, h, w)`` order, as :func:`volshade.most_salient_view` returns; the
         other keywords are :meth:`orbit`'s (``distance``, ``image_shape``, ...).
         Straight along ``±d`` the azimuth is undefined and taken as 0.
+
+        The viewpoint functions score directions in voxel index space (digital
+        lines through the voxel grid); give the volume's voxel ``spacing`` (mm) to
+        look along the same direction in the scene, ``view * spacing``. With voxels
+        of 4 x 1 x 1 mm, ``(1, 1, 0)`` is 76 degrees above the h axis, not 45.
 
         Raises:
             ValueError: ``view`` not of shape ``(3,)``, or zero or not finite (when
@@ -192,7 +197,7 @@ class Camera(eqx.Module):
         view = _checks.refuse(view, [(~jnp.all(jnp.isfinite(view)) | ~jnp.any(view != 0),
                                       "`view` must be a finite, non-zero (3,) direction.")],
                               where)
-        v = safe_normalize(view)
+        v = safe_normalize(view * jnp.asarray(_checks.spacing(spacing, where), view.dtype))
         elevation = jnp.rad2deg(jnp.arcsin(jnp.clip(v[0], -1, 1)))
         azimuth = jnp.rad2deg(jnp.arctan2(v[2], v[1]))
         return cls.orbit(azimuth=azimuth, elevation=elevation, **orbit_kwargs)

@@ -337,7 +337,8 @@ def most_salient_view(
     :func:`viewpoint_saliency` (Figure 6 b; ``per_area=True``: Figure 6 f).
 
     For the index use ``jnp.argmax(viewpoint_saliency(...))``. Arguments as in
-    :func:`viewpoint_saliency`; ties go to the first viewpoint.
+    :func:`viewpoint_saliency`; ties go to the first viewpoint. The direction is in
+    voxel index space: ``Camera.from_view(view, spacing=...)`` looks along it.
 
     Example:
         >>> sal = jnp.zeros((8, 8, 8)).at[1, 4, 4].set(1.0)
