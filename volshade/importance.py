@@ -63,7 +63,10 @@ class Importance(eqx.Module):
         unocclusion: $W_{unocclusion}$ (sec. IV-A5).
         lighting: $W_{lighting}$ (eq. 10, sec. IV-A6).
         background: importance of the background layer before the global
-            weight, $I_{bg} = W_{global} W_{bg}$ (sec. IV-C).
+            weight, $I_{bg} = W_{global} W_{bg}$ (sec. IV-C). The default 0 is the
+            paper's slider at zero: samples of negative importance (negative
+            weights) then rank below the background, which fades them; ``-inf``
+            (:func:`volshade.composite`'s default) means no background layer.
         silhouette_exponent, silhouette_start, silhouette_end: $p$, $s_1$, $s_2$
             of eq. 9 (1.7, 0.4, 1.0).
         darkening: silhouette colour darkening $k$ in $e^{-k\,sil}$ (paper: 4).
