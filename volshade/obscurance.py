@@ -92,12 +92,10 @@ def _rho_ao(d: Array, d_max: Array) -> Array:
     return jnp.zeros_like(d)
 
 
-# d / d_max by `quotient`: the slope -d / d_max^2 of the plain quotient rule overflows
-# float32 for d_max below about 1e-19 voxels, and the unoccluded directions' discarded
-# rho(d_max, d_max) would multiply that inf by 0
-
-
 def _rho_linear(d: Array, d_max: Array) -> Array:
+    # (all three by `quotient`: the slope -d / d_max^2 of the plain quotient rule
+    # overflows float32 for d_max below about 1e-19 voxels, and the unoccluded
+    # directions' discarded rho(d_max, d_max) would multiply that inf by 0)
     return quotient(d, d_max)
 
 

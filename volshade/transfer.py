@@ -282,7 +282,8 @@ def feature_opacities(
 def _check_feature_range(feature: TransferFunction, volume: Array, i: int, where: str) -> None:
     """Refuse, when known, a feature whose control points do not span the volume (the
     natural way to write a band stops at its edges); ``opacity`` checks traced values."""
-    points = _checks.concrete(feature.points.astype(volume.dtype))
+    # in the dtype opacity() compares in (half precision as float32)
+    points = _checks.concrete(feature.points.astype(_checks.at_least_float32(volume).dtype))
     known = _checks.concrete(volume)
     if points is None or known is None:
         return
