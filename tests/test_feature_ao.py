@@ -375,7 +375,8 @@ def test_bad_inputs_raise_clear_errors():
     # a band written only over its own range names the feature and both fixes
     band = vs.TransferFunction.from_points([(0.2, 1, 0, 0, 0.0), (0.3, 1, 0, 0, 0.5),
                                             (0.4, 1, 0, 0, 0.0)])
-    with pytest.raises(ValueError, match=r"features\[1\]'s control points span \[0.2, 0.4\], "
+    with pytest.raises(ValueError, match=r"^volshade.feature_ao: features\[1\]'s control points "
+                                         r"span \[0.2, 0.4\], "
                                          r"but `volume` holds values in \[0, .*IntervalFeature"):
         vs.feature_ao(vol, features=[SHELLS_TF, band], **kw)
     with pytest.raises(Exception, match="outside the transfer function's control points"):

@@ -46,6 +46,22 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     assert float(g_int.obscurance.d_max) == float(g_float.obscurance.d_max) != 0.0
 
 
+def test_lao_module_with_a_batch_axis_vmaps():
+    # a batch of radii and of weights (the constructor checks one member's shapes)
+    dirs = icosphere(0)
+    p = vs.LocalAmbientOcclusion(jnp.array([3.0, 4.0]), directions=dirs, samples=3,
+                                 max_radius=5.0, weights=jnp.stack([jnp.ones(12),
+                                                                    jnp.arange(12.0)]))
+    axes = eqx.tree_at(lambda q: (q.radius, q.weights), jax.tree_util.tree_map(lambda _: None, p),
+                       (0, 0), is_leaf=lambda x: x is None)
+    alpha = jnp.asarray(np.random.default_rng(0).uniform(0, 0.5, (6, 6, 6)))
+    out = eqx.filter_vmap(lambda q: q(alpha), in_axes=(axes,))(p)
+    for i, (radius, weights) in enumerate(((3.0, jnp.ones(12)), (4.0, jnp.arange(12.0)))):
+        one = vs.LocalAmbientOcclusion(radius, directions=dirs, samples=3, max_radius=5.0,
+                                       weights=weights)
+        np.testing.assert_allclose(out[i], one(alpha), rtol=1e-12)
+
+
 def test_nested_lists_become_arrays():
     # as a user types them: lists, ints among floats
     tf = vs.TransferFunction([0, 1], [[0, 0, 0], [1, 1, 1]], [0.0, 0.5])
@@ -109,7 +125,7 @@ def test_nested_lists_become_arrays():
     (lambda: vs.Camera.orbit(target=(0.0, 0.0)), ValueError,
      r"Camera.orbit: `target` must be a point \(d, h, w\), got shape \(2,\)"),
     (lambda: vs.Focus(radius=jnp.array([0.1, 0.2])).weights((8, 8)), ValueError,
-     r"volshade.Focus: `radius` must be a scalar, got shape \(2,\)"),
+     r"volshade.Focus: `radius` must have shape \(\), got \(2,\); .* inside jax.vmap"),
     (lambda: vs.Camera.orbit(target=(0.0, jnp.inf, 0.0)), ValueError,
      "Camera.orbit: `target` must be finite"),
     (lambda: vs.TransferFunction([0.0, 1.0], "white", [0.0, 1.0]), TypeError,

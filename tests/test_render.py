@@ -428,8 +428,10 @@ def test_camera_geometry_and_png(tmp_path):
     with pytest.raises(ValueError, match=r"must be \(H, W\), \(H, W, 3\) or"):
         save_png(tmp_path / "x.png", jnp.ones((2, 2, 2)))
     # an 8-bit image is refused, not clipped to 0 and 1 of 255
-    with pytest.raises(TypeError, match="floating point.*img_as_float"):
+    with pytest.raises(TypeError, match="integers of dtype uint8; convert them with .*img_as_"):
         save_png(tmp_path / "x.png", np.full((2, 2, 3), 255, np.uint8))
+    save_png(tmp_path / "bf16.png", jnp.full((2, 2, 3), 0.5, jnp.bfloat16))  # a float, written
+    assert int(io.imread(tmp_path / "bf16.png")[0, 0, 0]) in (127, 128)
 
 
 def test_intersect_box_matches_the_numpy_slab_method():

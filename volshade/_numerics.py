@@ -24,21 +24,33 @@ def eps(x: ArrayLike) -> Array:
     return jnp.asarray(jnp.finfo(jnp.result_type(x, jnp.float32)).eps, jnp.result_type(x))
 
 
-@jax.custom_jvp
 def quotient(num: ArrayLike, den: ArrayLike) -> Array:
     """``num / den`` for ``den != 0``, differentiated as ``(dnum - q dden) / den``.
 
-    The same derivative as ``/``, but it never forms ``den ** 2``, which overflows
-    (float32: for ``|den|`` below about 1e-19) and turns a finite slope into inf or NaN
-    wherever the quotient itself is moderate.
+    The same first derivative as ``/``, whose rule ``-num dden / den**2`` overflows
+    (float32: ``den**-2`` for ``|den|`` below about 1e-19) and turns a finite slope into
+    inf, or into NaN where a discarded branch multiplies it by 0, wherever the quotient
+    itself is moderate. Integer operands are taken as floats (an integer input has no
+    tangent to combine).
     """
-    return jnp.asarray(num) / jnp.asarray(den)
+    num, den = jnp.asarray(num), jnp.asarray(den)
+    dtype = jnp.result_type(num, den)
+    if not jnp.issubdtype(dtype, jnp.inexact):
+        dtype = jnp.result_type(float)
+    num, den = (x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(dtype)
+                for x in (num, den))
+    return _quotient(num, den)
 
 
-@quotient.defjvp
+@jax.custom_jvp
+def _quotient(num: Array, den: Array) -> Array:
+    return num / den
+
+
+@_quotient.defjvp
 def _quotient_jvp(primals, tangents):
     (num, den), (dnum, dden) = primals, tangents
-    q = quotient(num, den)
+    q = _quotient(num, den)
     return q, (dnum - q * dden) / den
 
 

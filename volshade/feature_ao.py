@@ -71,7 +71,7 @@ from jax import lax
 from . import _checks
 from ._types import Array, ArrayLike, Float, Int, Volume
 from .lao import LocalAmbientOcclusion, lao
-from .transfer import Feature, TransferFunction, _feature_tuple, feature_opacities
+from .transfer import Feature, TransferFunction, _feature_opacities, _feature_tuple
 
 _WHERE = "volshade.feature_ao"
 _NO_FEATURE = -1
@@ -262,8 +262,7 @@ def feature_ao(
         (16, 16, 16)
     """
     _checks.option(merge, MERGES, "merge", _WHERE)
-    opacities = feature_opacities(volume, _feature_tuple(features, _WHERE), base=base,
-                                  step=step)
+    opacities = _feature_opacities(volume, features, base, step, _WHERE)
 
     def one(alpha):
         return lao(alpha, directions=directions, radius=radius, offset=offset,
@@ -315,5 +314,6 @@ class FeatureAmbientOcclusion(eqx.Module):
                  step: float | None = None) -> Volume:
         """Feature-driven AO of ``volume``: :func:`feature_ao` with these parameters
         (``base`` and ``step`` as there)."""
-        return _merged(feature_opacities(volume, self.features, base=base, step=step),
+        return _merged(_feature_opacities(volume, self.features, base, step,
+                                          "volshade.FeatureAmbientOcclusion"),
                        self.lao, self.merge)

@@ -559,11 +559,12 @@ class Focus(eqx.Module):
 
     def weights(self, image_shape: tuple[int, int]) -> Float[Array, "H W"]:
         """Per-ray weights for an image of ``image_shape`` (:func:`focus_weights`)."""
-        for name in ("radius", "inside", "outside"):  # (one Focus: vmap a batch of them)
-            if jnp.shape(getattr(self, name)) != ():
-                raise ValueError(f"volshade.Focus: `{name}` must be a scalar, got shape "
-                                 f"{jnp.shape(getattr(self, name))}; for several, vmap over "
-                                 f"a Focus built with a batch axis.")
+        for name, shape in (("center", (2,)), ("radius", ()), ("inside", ()), ("outside", ())):
+            if jnp.shape(getattr(self, name)) != shape:
+                raise ValueError(f"volshade.Focus: `{name}` must have shape {shape}, got "
+                                 f"{jnp.shape(getattr(self, name))}; for several foci, build "
+                                 f"each Focus inside jax.vmap, e.g. jax.vmap(lambda r: "
+                                 f"Focus(radius=r).weights(shape))(radii).")
         h, w = image_shape
         center = self.center * jnp.asarray([h, w], self.center.dtype) - 0.5
         return focus_weights(image_shape, center=center, radius=self.radius * h, kind=self.kind,

@@ -615,10 +615,11 @@ def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
     return arr
 
 
-def _weights_array(weights, n_dirs: int, where: str) -> Array:
-    """``weights`` as a float array, one per direction (trace-time shape check)."""
+def _weights_array(weights, n_dirs: int, where: str, *, batch: bool = False) -> Array:
+    """``weights`` as a float array, one per direction (trace-time shape check);
+    ``batch``: leading batch axes allowed (a module to be vmapped)."""
     weights = _checks.as_float_array(weights, "weights", where)
-    if weights.shape != (n_dirs,):
+    if weights.shape != (n_dirs,) and not (batch and weights.shape[-1:] == (n_dirs,)):
         raise ValueError(f"{where}: `weights` must have shape (L,) = ({n_dirs},), one "
                          f"per direction, got {tuple(weights.shape)}.")
     return weights
@@ -881,12 +882,17 @@ class LocalAmbientOcclusion(eqx.Module):
              f"`radius` ({radius!r}) must be > `offset` ({offset!r}); increase the radius "
              f"or lower the offset (default 1 voxel).")], where, traced=False)
         # the options lao() checks, checked here too: stored unchecked, they would fail
-        # only at the first call, perhaps deep inside a jit
-        n_dirs = _directions_array(directions, jnp.result_type(float), where).shape[0]
+        # only at the first call, perhaps deep inside a jit (a module with a batch axis,
+        # for vmap, like a batched radius: its first member)
+        one = directions
+        if eqx.is_array(directions) and directions.ndim > 2:
+            one = directions.reshape(-1, *directions.shape[-2:])[0]
+        n_dirs = _directions_array(one, jnp.result_type(float), where).shape[0]
         if isinstance(directions, int | np.integer) and not isinstance(directions, bool):
             directions = _directions.fibonacci(int(directions))
         self.directions = jnp.asarray(directions)
-        self.weights = None if weights is None else _weights_array(weights, n_dirs, where)
+        self.weights = (None if weights is None
+                        else _weights_array(weights, n_dirs, where, batch=True))
         self.samples = _checks.positive_int(samples, "samples", where)
         self.opacity_correction = _checks.flag(opacity_correction, "opacity_correction", where)
         self.brick_size = (None if brick_size is None

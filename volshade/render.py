@@ -271,12 +271,11 @@ def save_png(path, image: Float[Array, "H W C"]) -> None:
     if not (img.ndim == 2 or img.ndim == 3 and img.shape[-1] in (3, 4)):
         raise ValueError(f"volshade.save_png: `image` must be (H, W), (H, W, 3) or "
                          f"(H, W, 4), got {img.shape}.")
-    if not np.issubdtype(img.dtype, np.floating):
+    if np.issubdtype(img.dtype, np.integer):
         # np.clip(img, 0, 1) would turn an 8-bit white 255 into 1 of 255
-        raise TypeError(f"volshade.save_png: `image` must be floating point in [0, 1] (a "
-                        f"render), got dtype {img.dtype}; convert it with "
-                        f"skimage.util.img_as_float, or write integer images with "
-                        f"skimage.io.imsave.")
+        raise TypeError(f"volshade.save_png: `image` must be in [0, 1] (a render), got "
+                        f"integers of dtype {img.dtype}; convert them with "
+                        f"skimage.util.img_as_float, or write them with skimage.io.imsave.")
     if not np.all(np.isfinite(img)):
         raise ValueError("volshade.save_png: `image` contains NaN or inf.")
     pixels = img if img.ndim == 2 else img[..., :3]

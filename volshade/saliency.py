@@ -397,6 +397,7 @@ def modulate_opacity(
 
     Raises:
         ValueError: shapes differ, ``boost_top`` outside (0, 1], non-scalar ``threshold``.
+        TypeError: ``multiply`` not a bool, a traced ``boost_top``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
             ``opacity`` or ``saliency`` outside [0, 1], NaN/inf in either volume or in
             ``threshold``.
@@ -428,6 +429,7 @@ def opacity_factor(
 
     $f = 0$ where $S <$ ``threshold``, else $b\, S^m$ ($b$, $m$ as in
     :func:`modulate_opacity`). The renderer multiplies interpolated opacities by it.
+    Errors as :func:`modulate_opacity`'s.
     """
     return _opacity_factor(saliency, threshold, multiply, boost_top,
                            "volshade.saliency.opacity_factor")

@@ -255,7 +255,12 @@ def feature_opacities(
         TypeError: ``features`` not a list of features, ``base`` not a
             :class:`TransferFunction`.
     """
-    where = "volshade.transfer.feature_opacities"
+    return _feature_opacities(volume, features, base, step,
+                              "volshade.transfer.feature_opacities")
+
+
+def _feature_opacities(volume, features, base, step, where: str) -> Array:
+    """:func:`feature_opacities`, its errors naming ``where`` (the function called)."""
     features = _feature_tuple(features, where)
     volume = _checks.volume(volume, "volume", where)
     if base is not None and not isinstance(base, TransferFunction):
@@ -265,9 +270,11 @@ def feature_opacities(
         step = _checks.positive_float(step, "step", where)
     out = []
     base_opacity = None  # classified once for all the intervals
+    # the volume's range, fetched from the device once for all the features (when known)
+    extent = _checks.concrete(jnp.stack([jnp.min(volume), jnp.max(volume)]))
     for i, feature in enumerate(features):
         if isinstance(feature, TransferFunction):
-            _check_feature_range(feature, volume, i, where)
+            _check_feature_range(feature, volume.dtype, extent, i, where)
             out.append(feature.opacity(volume, step=step))
             continue
         if base is None:
@@ -279,15 +286,16 @@ def feature_opacities(
     return jnp.stack(out)
 
 
-def _check_feature_range(feature: TransferFunction, volume: Array, i: int, where: str) -> None:
-    """Refuse, when known, a feature whose control points do not span the volume (the
-    natural way to write a band stops at its edges); ``opacity`` checks traced values."""
+def _check_feature_range(feature: TransferFunction, dtype, extent: np.ndarray | None, i: int,
+                         where: str) -> None:
+    """Refuse, when known, a feature whose control points do not span the volume's
+    ``extent`` (min, max): the natural way to write a band stops at its edges.
+    ``opacity`` checks traced values."""
     # in the dtype opacity() compares in (half precision as float32)
-    points = _checks.concrete(feature.points.astype(_checks.at_least_float32(volume).dtype))
-    known = _checks.concrete(volume)
-    if points is None or known is None:
+    points = _checks.concrete(feature.points.astype(jnp.promote_types(dtype, jnp.float32)))
+    if points is None or extent is None:
         return
-    low, high = float(np.min(known)), float(np.max(known))
+    low, high = (float(x) for x in extent)
     if low < points[0] or high > points[-1]:
         raise ValueError(
             f"{where}: features[{i}]'s control points span [{points[0]:g}, {points[-1]:g}], "
