@@ -271,7 +271,8 @@ def _feature_opacities(volume, features, base, step, where: str) -> Array:
     out = []
     base_opacity = None  # classified once for all the intervals
     # the volume's range, fetched from the device once for all the features (when known)
-    extent = _checks.concrete(jnp.stack([jnp.min(volume), jnp.max(volume)]))
+    extent = (_checks.concrete(jnp.stack([jnp.min(volume), jnp.max(volume)]))
+              if any(isinstance(f, TransferFunction) for f in features) else None)
     for i, feature in enumerate(features):
         if isinstance(feature, TransferFunction):
             _check_feature_range(feature, volume.dtype, extent, i, where)
