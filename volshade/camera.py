@@ -133,21 +133,19 @@ class Camera(eqx.Module):
         """
         where = "volshade.Camera.orbit"
         dtype = jnp.result_type(float)
-        target_in, fov_in, width_in = target, fov, width
-        a, e, target, length, fov, width = (
-            _checks.float_leaf(x, k, where).astype(dtype) for x, k in (
-                (azimuth, "azimuth"), (elevation, "elevation"), (target, "target"),
-                (distance, "distance"), (fov, "fov"), (width, "width")))
-        if target.shape != (3,):
+        given = {"azimuth": azimuth, "elevation": elevation, "target": target,
+                 "distance": distance, "fov": fov, "width": width}
+        leaves = {name: _checks.float_leaf(x, name, where).astype(dtype)
+                  for name, x in given.items()}
+        if leaves["target"].shape != (3,):
             raise ValueError(f"{where}: `target` must be a point (d, h, w), got shape "
-                             f"{target.shape}.")
-        for value, raw, name in ((a, azimuth, "azimuth"), (e, elevation, "elevation"),
-                                 (target, target_in, "target"), (length, distance, "distance"),
-                                 (fov, fov_in, "fov"), (width, width_in, "width")):
+                             f"{leaves['target'].shape}.")
+        for name, value in leaves.items():
             # traced values: the render refuses a non-finite eye or target, at run time
             _checks.refuse(value, [(~jnp.all(jnp.isfinite(value)),
-                                    f"`{name}` must be finite, got {raw!r}.")],
+                                    f"`{name}` must be finite, got {given[name]!r}.")],
                            where, traced=False)
+        a, e, target, length, fov, width = leaves.values()
         # on the input: under jit, even an array made from a Python number is traced
         dist = _checks.concrete(distance)
         if dist is not None and not np.all(dist > 0):
