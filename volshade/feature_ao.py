@@ -18,7 +18,10 @@ occlusion of the others, and then merge the $T_k$ into one ambient volume
   maximum of its occlusion values, which grow towards a feature; here AO is a
   visibility (1 = unoccluded, as :func:`~volshade.lao.lao` returns it), so the
   same operator is the minimum. The maximum *visibility* would be 1 wherever any
-  one feature is out of reach, i.e. almost everywhere. Each voxel keeps the
+  one feature is out of reach, i.e. almost everywhere. (Section 4.1 of the paper
+  describes the $T_k$ as occlusion factors that *decrease* towards occluders,
+  which would make its maximum this same visibility maximum; its section 4.2 and
+  its results read them as occlusions, and so does this merge.) Each voxel keeps the
   occlusion of the single feature that occludes it most, its own or a
   neighbour's: it "extends the influence of opaque features to neighbouring less
   opaque ones" (section 4.2), and only the sum of several features' occlusions,
@@ -50,15 +53,20 @@ the forward pass holds one :func:`~volshade.lao.lao` call's memory plus $2 n_f$
 volumes, and reverse mode keeps each feature's march inputs as well.
 
 **Bricking** (section 4.3): with ``brick_size`` each feature's march skips the
-bricks with none of *that* feature's opacity within reach, which is the paper's
-per-feature brick structure. Its single global structure (bricks empty of every
-feature) exists in the paper to save building $n_f$ structures on the GPU; here a
-structure is one max-pool of the opacity, negligible beside a march, so only the
-per-feature structure, which skips at least as much, is offered.
+bricks with none of *that* feature's opacity within reach of the radius
+(:func:`~volshade.lao.lao`'s bricking, on $\alpha_k$). The paper's per-feature
+structure marks instead the bricks that hold none of the feature's voxels, "with
+some overlapping" (1 to 3 voxels in its Table 3), and skips them as unused by the
+merge; but the ``"max"`` and ``"neighbourhood"`` merges read $T_k$ at voxels of
+other features and of empty space, so here a brick is skipped only where $T_k = 1$
+exactly, and skipping never changes a value. The paper's single global structure
+(bricks empty of every feature) exists to save building $n_f$ structures on the
+GPU; here a structure is one max-pool of the opacity, negligible beside a march,
+so only the per-feature structure, which skips at least as much, is offered.
 
 References:
     Ancel, Dischler, Mongenet, "Feature-driven ambient occlusion for direct volume
-    rendering", IEEE/EG Volume Graphics 2010, sections 4.1-4.3, eq. 3-5.
+    rendering", IEEE/EG Volume Graphics 2010, sections 4.1-4.3, eq. 3-6.
 """
 
 import functools

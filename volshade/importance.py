@@ -63,7 +63,11 @@ class Importance(eqx.Module):
         unocclusion: $W_{unocclusion}$ (sec. IV-A5).
         lighting: $W_{lighting}$ (eq. 10, sec. IV-A6).
         background: importance of the background layer before the global
-            weight, $I_{bg} = W_{global} W_{bg}$ (sec. IV-C). The default 0 is the
+            weight, $I_{bg} = W_{global} W_{bg}$. Sec. IV-C gives the background
+            only "an adjustable importance" (sec. V: a slider of its own); scaling
+            it by $W_{global}$, as the samples' importance is, is this library's
+            choice: a ray's global (or focus) weight then rescales samples and
+            background alike and keeps their order. The default 0 is the
             paper's slider at zero: samples of negative importance (negative
             weights) then rank below the background, which fades them; ``-inf``
             (:func:`volshade.composite`'s default) means no background layer.
@@ -144,6 +148,9 @@ class Importance(eqx.Module):
 
     def background_importance(self, global_weight: ArrayLike | None = None) -> Array:
         r"""Importance of the background layer, $I_{bg} = W_{global} W_{bg}$ (sec. IV-C).
+
+        The factor $W_{global}$ is this library's choice (see ``background``); the
+        paper gives the background an adjustable importance of its own.
 
         A zero global weight gives 0 (importance off). $W_{bg} = -\infty$ ("no
         background") gives $-\infty$ for any other weight, of either sign, with

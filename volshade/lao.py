@@ -3,7 +3,9 @@ r"""Local ambient occlusion (LAO) by ray marching, gather-free, exact and differ
 For the centre $x$ of every voxel, $L$ rays of length $R$ (the *radius*) are cast
 in the directions $l$; along each, $M$ opacity samples $\alpha_i$ (trilinear,
 zero outside the volume) are composited front to back (Hernell et al. 2007;
-Ancel et al. 2010, section 3, eq. 3-4; Titov et al., eq. 2-3):
+Ancel et al. 2010, section 3, eq. 3-4; Titov et al., eq. 2-3). The sum has $M$ terms,
+as in Titov et al.'s eq. 2; Ancel et al.'s eq. 3 is printed with $m$ up to $M$, $M + 1$
+terms, which would give an empty ray $(M + 1)/M > 1$:
 
 $$ I_l(x) = \sum_{m=0}^{M-1} \frac{1}{M} \prod_{i=0}^{m-1} (1 - \alpha_i),
 \qquad \mathrm{AO}(x) = \sum_l \hat w_l\, I_l(x), \quad
@@ -718,7 +720,8 @@ def lao(
 
     $I_l(x) = \sum_{m=0}^{M-1} \frac1M \prod_{i<m} (1 - \alpha_i)$ with
     $\alpha_i$ the trilinear opacity at $x + s_i l$, $s_i = a + (i + \frac12)
-    \frac{R - a}{M}$ (Ancel et al. 2010, section 3, eq. 3), and
+    \frac{R - a}{M}$ (Ancel et al. 2010, section 3, eq. 3, with $M$ terms as in Titov
+    et al.'s eq. 2), and
     $\mathrm{AO}(x) = \sum_l w_l I_l(x) / \sum_l w_l$ (eq. 4; Titov et al. eq. 3).
     See the module docstring for the exact positions and the opacity correction.
 
@@ -785,7 +788,8 @@ def lao(
         Hernell, Ljung, Ynnerman, "Efficient ambient and emissive tissue
         illumination using local occlusion in multiresolution volume rendering",
         Volume Graphics 2007. Ancel, Dischler, Mongenet, "Feature-driven ambient
-        occlusion for direct volume rendering", EG VCBM 2010 (eq. 2-4, section 4.3).
+        occlusion for direct volume rendering", IEEE/EG Volume Graphics 2010 (eq. 2-4,
+        section 4.3).
         Titov et al., "Contextual ambient occlusion" (eq. 2-3).
 
     Example:

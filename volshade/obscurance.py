@@ -56,7 +56,8 @@ derivative is zero almost everywhere, and it is not propagated.
 
 References:
     Ruiz, Boada, Viola, Bruckner, Feixas, Sbert: Obscurance-based volume
-    rendering framework. Volume Graphics 2008 (eq. 1-3, sections 2.1, 3.1, 3.2).
+    rendering framework. Volume and Point-Based Graphics 2008 (eq. 1-3, sections 2.1,
+    3.1, 3.2).
     Stewart: Vicinity shading for enhanced perception of volumetric data. IEEE
     Visualization 2003.
     Méndez, Sbert, Catá: Real-time obscurances with color bleeding. SCCG 2003.
@@ -556,7 +557,8 @@ def obscurance(
 
     References:
         Ruiz, Boada, Viola, Bruckner, Feixas, Sbert: Obscurance-based volume
-        rendering framework. Volume Graphics 2008, eq. (1)-(3), sections 2.1-3.2.
+        rendering framework. Volume and Point-Based Graphics 2008, eq. (1)-(3),
+        sections 2.1-3.2.
 
     Example:
         >>> from volshade.directions import icosphere

@@ -7,6 +7,13 @@ by its maximum over the volume:
 
 $$ S(p) = \frac{\sqrt{A^2 + B^2 + C^2}}{\max_q \sqrt{A_q^2 + B_q^2 + C_q^2}}. $$
 
+Here $(A, B, C)$ is :func:`volshade.gradient.regression_gradient`: eq. 4's sums
+$\sum_k w(k) O(k) x_i(k)$, each divided by $\sum_k w(k) x_i(k)^2$. With equal
+spacing on the three axes that divisor is one common factor, which the scaling by
+the maximum removes, so $S$ is eq. 4's. With unequal spacing each axis has its own
+divisor, which makes $(A, B, C)$ the gradient in mm (exact for linear fields);
+eq. 4's raw sums would weigh the long axis more, and $S$ differs from them there.
+
 Viewpoint saliency (section 5.2, eq. 6) sums the voxel saliency weighted by the
 visibility of each voxel from the viewpoint, $S(v) = \sum_p S(p) V(p)$. Here
 $V(p)$ is the transmittance from $p$ to the outside of the volume towards an
