@@ -101,6 +101,9 @@ def test_bad_clips_raise_clear_errors():
         vs.SphereClip(centre=(1.0, 2.0, 3.0), radius=0.0)
     with pytest.raises(ValueError, match="`centre` must be 3 numbers"):
         vs.SphereClip(centre=(1.0, 2.0), radius=1.0)
+    for centre in ((np.nan, 0.0, 0.0), (0.0, np.inf, 0.0)):
+        with pytest.raises(ValueError, match="`centre` must be finite"):
+            vs.HalfSpaceClip(centre=centre)
     with pytest.raises(ValueError, match="orthonormal"):
         vs.BoxClip(centre=(1.0, 2.0, 3.0), half_size=1.0, rotation=2 * np.eye(3))
     with pytest.raises(ValueError, match=r"`rotation` must be a 3x3"):

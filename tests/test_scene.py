@@ -421,3 +421,22 @@ def test_corrected_lao_sees_the_medium_not_how_the_transfer_function_is_written(
     # 2 mm voxels: the one-voxel opacity is 1 - 0.7^2
     direct = params(jnp.full((10, 10, 10), 1 - 0.7 ** 2))
     np.testing.assert_allclose(np.asarray(aos[0]), np.asarray(direct), atol=1e-12)
+
+
+@pytest.mark.parametrize("effects", [
+    {"ambient": "lao", "lao": LocalAmbientOcclusion(3.0, directions=6, samples=4)},
+    {"ambient": "obscurance", "obscurance": ObscuranceParams(d_max=4.0, level=0,
+                                                             density="opacity")},
+    {"modulation": "saliency"},
+])
+def test_an_integer_volume_renders_as_its_float_values(effects):
+    # the effects classify the scene's volume themselves (the march converts it apart)
+    tf = vs.TransferFunction.from_points([(0.0, 1, 1, 1, 0.0), (1.0, 1, 1, 1, 0.0),
+                                          (2.0, 1, 1, 1, 0.9)])
+    vol = np.zeros((8, 8, 8), np.int32)
+    vol[2:6, 2:6, 2:6] = 2
+    cam = Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))
+    images = [render(Scene(volume=v, transfer=tf, shading="phong", **effects), cam)
+              for v in (vol, vol.astype(float))]
+    np.testing.assert_allclose(images[0], images[1], atol=1e-12)
+    assert float(jnp.max(images[1][..., 3])) > 0.5

@@ -182,3 +182,25 @@ def test_float32_volumes_are_classified_in_float32_whatever_the_control_values_d
     feature = IntervalFeature(0.2, 0.4)
     for dtype in (jnp.float32, jnp.float64):
         assert float(feature.opacity(jnp.asarray([0.4], dtype), wide)[0]) == pytest.approx(0.4)
+
+
+def test_integer_bool_and_list_volumes_are_classified_as_their_values():
+    # the interpolation runs in the volume's dtype: an int32 volume would truncate every
+    # opacity and colour in [0, 1] to 0, silently
+    tf = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (1.0, 0.6, 0.4, 0.2, 0.5),
+                                       (3.0, 1, 1, 1, 0.8)])
+    values = np.array([0, 1, 2, 3])
+    expected = tf(jnp.asarray(values, float))
+    for volume in (values.astype(np.int32), values.astype(np.uint8), values.tolist()):
+        color, alpha = tf(volume)
+        np.testing.assert_allclose(alpha, expected[1], rtol=1e-15)
+        np.testing.assert_allclose(color, expected[0], rtol=1e-15)
+        np.testing.assert_allclose(tf.opacity(volume), expected[1], rtol=1e-15)
+        np.testing.assert_allclose(tf.color(volume), expected[0], rtol=1e-15)
+        np.testing.assert_allclose(tf.extinction(volume),
+                                   tf.extinction(jnp.asarray(values, float)), rtol=1e-15)
+        np.testing.assert_allclose(IntervalFeature(0.5, 2.5).opacity(volume, tf),
+                                   [0.0, 0.5, 0.65, 0.0], rtol=1e-15)
+    np.testing.assert_allclose(tf.opacity(jnp.array([False, True])), [0.0, 0.5])
+    with pytest.raises(TypeError, match="`volume` must have a real floating or integer dtype"):
+        tf.opacity(jnp.array([1j]))

@@ -63,6 +63,8 @@ def _pose(centre, rotation, where: str) -> tuple[Array, Array]:
     if rotation.shape != (3, 3):
         raise ValueError(f"{where}: `rotation` must be a 3x3 rotation matrix, got shape "
                          f"{rotation.shape}.")
+    _checks.refuse(centre, [(~jnp.all(jnp.isfinite(centre)), "`centre` must be finite "
+                             "(voxels).")], where, traced=False)
     _checks.refuse(rotation, [(~_orthonormal(rotation), "`rotation` must be orthonormal (a "
                                "rotation matrix): the signed distance is exact only then.")],
                    where, traced=False)
