@@ -4,6 +4,8 @@ LAO's gradient is a custom VJP (reverse mode only): ``vs.fit`` gives the residua
 JVP rule built from their VJP, which least-squares solvers and minimisers use.
 """
 
+import re
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -12,7 +14,7 @@ import optimistix as optx
 import pytest
 
 import volshade as vs
-from volshade.fit import _forward_by_reverse, _from_bounded, _to_bounded
+from volshade.fit import _forward_by_reverse, _from_bounded, _leaf, _to_bounded
 
 
 @pytest.mark.slow
@@ -189,3 +191,48 @@ def test_bad_input_is_refused_with_the_fix(change, error, match):
 def test_a_non_finite_target_is_refused():
     with pytest.raises(Exception, match="target.*NaN or inf"):
         _bad_call(target=jnp.full((4, 4, 4), jnp.nan))
+
+
+@pytest.mark.parametrize("path, match", [
+    ("lao.directions", "ray directions"),
+    ("clip.centre", "piecewise constant"),
+    ("clip.rotation", "piecewise constant"),
+    ("clip.radius", "piecewise constant"),
+    ("saliency.threshold", "step at the threshold"),
+    ("focus.center", "circular focus is a step"),
+    ("focus.radius", "circular focus is a step"),
+    ("feature_ao.features.1.low", "only select voxels"),
+])
+def test_leaves_without_a_gradient_are_refused(path, match):
+    # the image depends on them, but with a zero derivative: the fit would stop at once
+    # and report success with the value unchanged
+    grey = vs.transfer.preset("grey")
+    effects = {
+        "lao": {"ambient": "lao"},
+        "clip": {"clip": vs.SphereClip(centre=(3.0, 3.0, 3.0), radius=2.0)},
+        "saliency": {"modulation": "saliency"},
+        "focus": {"composition": "importance", "focus": vs.Focus(kind="circular")},
+        "feature_ao": {"ambient": "feature_ao", "feature_ao": vs.FeatureAmbientOcclusion(
+            [grey, vs.IntervalFeature(0.2, 0.6)])},
+    }[path.split(".")[0]]
+    scene = vs.Scene(volume=jnp.zeros((6, 6, 6)), transfer=grey, **effects)
+    cam = vs.Camera.orbit(image_shape=(4, 4))
+    with pytest.raises(ValueError, match=f"{re.escape(repr(path))} gets no gradient.*{match}"):
+        vs.fit(scene, cam, jnp.zeros((4, 4, 4)), params=[path])
+    if path.startswith("focus"):
+        smooth = eqx.tree_at(lambda s: s.focus, scene, vs.Focus(kind="gaussian"))
+        _leaf(smooth, path)  # smooth in them: accepted (this raises otherwise)
+
+
+@pytest.mark.slow
+def test_two_fields_holding_one_array_object_are_fitted_apart():
+    vol = vs.data.phantom("shells", shape=8).astype(jnp.float64)
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(6, 6))
+    truth = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading="phong",
+                     phong=vs.Phong(ambient=0.3, diffuse=0.6))
+    shared = jnp.asarray(0.45)
+    start = eqx.tree_at(lambda s: [s.phong.ambient, s.phong.diffuse], truth, [shared, shared])
+    assert start.phong.ambient is start.phong.diffuse
+    result = vs.fit(start, cam, vs.render(truth, cam), params=["phong.ambient", "phong.diffuse"])
+    np.testing.assert_allclose(result.values["phong.ambient"], 0.3, rtol=1e-8)
+    np.testing.assert_allclose(result.values["phong.diffuse"], 0.6, rtol=1e-8)

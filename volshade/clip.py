@@ -97,6 +97,11 @@ class Clip(eqx.Module):
     rotation: Float[Array, "3 3"]
     sizes = ()  # the names of the size leaves (voxels, > 0)
 
+    def _without_gradient(self) -> dict[str, str]:
+        """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
+        why = "a clip's masks are piecewise constant in its pose and sizes"
+        return dict.fromkeys(("centre", "rotation", *self.sizes), why)
+
     def signed_distance(self, points: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
         r"""Exact Euclidean signed distance $\phi$ (voxels) of ``points`` ``(..., 3)``
         to the shape's surface, negative inside."""

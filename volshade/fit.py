@@ -96,6 +96,12 @@ def _child(node: Any, part: str, path: str) -> Any:
         if fields[part].metadata.get("static", False):
             raise ValueError(f"{_WHERE}: {path!r} is static (it sets shapes or the traced "
                              f"program) and cannot be fitted; fit an array parameter.")
+        # array leaves the image depends on with a zero derivative: a fit would stop at
+        # once and report success with the value unchanged
+        why = getattr(node, "_without_gradient", dict)().get(part)
+        if why is not None:
+            raise ValueError(f"{_WHERE}: {path!r} gets no gradient ({why}), so a fit cannot "
+                             f"move it; fit a differentiable parameter.")
         return getattr(node, part)
     if isinstance(node, list | tuple) and part.isdigit() and int(part) < len(node):
         return node[int(part)]
@@ -219,16 +225,7 @@ def _parameters(scene: Scene, params: Any) -> tuple[dict[str, Bounds], list[Any]
     if not named:
         raise ValueError(f"{_WHERE}: `params` is empty; name at least one parameter, e.g. "
                          f"params=('lao.radius',).")
-    leaves = [_leaf(scene, path) for path in named]
-    seen: dict[int, str] = {}
-    for path, leaf in zip(named, leaves, strict=True):
-        if isinstance(leaf, float | int):
-            continue
-        if id(leaf) in seen:
-            raise ValueError(f"{_WHERE}: {seen[id(leaf)]!r} and {path!r} are the same array "
-                             f"in the scene; name it once.")
-        seen[id(leaf)] = path
-    return named, leaves
+    return named, [_leaf(scene, path) for path in named]
 
 
 def _one_per_camera(value: Any, name: str, count: int, single: bool, *, what: str,
@@ -447,9 +444,11 @@ def fit(
             fitted element by element, each element within the bounds. A parameter
             with a valid range needs bounds inside it (an LAO radius between its
             offset and ``max_radius``, an opacity in ``(0, 1)``): a step outside
-            would stop the fit with the kernel's runtime error. A parameter the image
-            does not depend on (an interval feature's ends, which only select
-            voxels) gets no step.
+            would stop the fit with the kernel's runtime error. A parameter whose
+            derivative is zero wherever it is defined (it selects voxels or pixels, or
+            is static configuration held in an array) is refused; an element the
+            image does not depend on (a control point outside the volume's range)
+            gets no step. Two fields that hold one array object are fitted apart.
         solver: an ``optimistix`` least-squares solver or minimiser (e.g.
             ``optx.BFGS``); by default ``vs.GaussNewtonLineSearch`` with
             ``rtol = sqrt(eps)`` and ``atol = eps`` of the render's dtype.
@@ -467,8 +466,11 @@ def fit(
     Raises:
         ValueError / TypeError: a path that does not name a floating-point array
             leaf of the scene (the message lists the valid fields), a static or
-            repeated parameter, bad bounds or an initial value outside them, targets
-            or weights that do not match the cameras, a solver of another kind.
+            repeated parameter, one that gets no gradient (``lao.directions``, an
+            interval feature's ends, a clip's pose and sizes, the saliency threshold,
+            a circular or screen-door focus's centre and radius), bad bounds or an
+            initial value outside them, targets or weights that do not match the
+            cameras, a solver of another kind.
 
     Example:
         >>> vol = vs.data.phantom("shells", shape=12)

@@ -564,6 +564,13 @@ class Focus(eqx.Module):
                                                    "image height).")],
                        "volshade.Focus", traced=False)  # traced: by focus_weights, in pixels
 
+    def _without_gradient(self) -> dict[str, str]:
+        """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
+        if self.kind == "gaussian":
+            return {}
+        why = f"a {self.kind} focus is a step in it; kind='gaussian' is smooth"
+        return {"center": why, "radius": why}
+
     def weights(self, image_shape: tuple[int, int]) -> Float[Array, "H W"]:
         """Per-ray weights for an image of ``image_shape`` (:func:`focus_weights`)."""
         for name, shape in (("center", (2,)), ("radius", ()), ("inside", ()), ("outside", ())):

@@ -913,6 +913,11 @@ class LocalAmbientOcclusion(eqx.Module):
         _checks.option(implementation, _IMPLEMENTATIONS, "implementation", where)
         self.implementation = implementation
 
+    def _without_gradient(self) -> dict[str, str]:
+        """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
+        return {"directions": "the ray directions are configuration; `lao` stops their "
+                              "gradient"}
+
     def __call__(self, alpha: Volume) -> Volume:
         """AO of ``alpha``: :func:`lao` with these parameters."""
         return lao(alpha, directions=self.directions, radius=self.radius, offset=self.offset,

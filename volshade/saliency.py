@@ -513,6 +513,10 @@ class SaliencyModulation(eqx.Module):
                        where, traced=False)
         _checks.refuse(d_max, _d_max_problems(d_max), where, traced=False)
 
+    def _without_gradient(self) -> dict[str, str]:
+        """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
+        return {"threshold": "the opacity factor is a step at the threshold"}
+
     def __call__(self, volume: Float[Array, "D H W"], transfer,
                  spacing: float | tuple[float, float, float] = 1.0) -> Float[Array, "D H W"]:
         """The opacity factor volume for ``volume`` classified by ``transfer``, with

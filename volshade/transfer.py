@@ -207,6 +207,11 @@ class IntervalFeature(eqx.Module):
                 not np.all(known_low < known_high):
             raise ValueError(f"{where}: need low < high (finite), got {low}, {high}.")
 
+    def _without_gradient(self) -> dict[str, str]:
+        """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
+        why = "the interval's ends only select voxels"
+        return {"low": why, "high": why}
+
     def opacity(self, volume: Array, base: TransferFunction, *,
                 step: float | Array | None = None) -> Array:
         """``base.opacity(volume, step=step)`` inside ``[low, high]``, 0 outside."""
