@@ -34,10 +34,20 @@ def test_cli_errors(tmp_path, capsys):
         cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--ambient",
                   "feature_ao"])
     assert "invalid choice: 'feature_ao'" in capsys.readouterr().err
-    with pytest.raises(SystemExit, match="unknown volume"):
-        cli.main(["render", "teapot", "--out", str(tmp_path / "x.png")])
-    with pytest.raises(SystemExit, match="--size must be >= 1"):
-        cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--size", "0"])
+    # every bad value: one line on stderr and exit status 2, as argparse's own errors
+    bogus = tmp_path / "bogus.nii.gz"
+    bogus.write_text("not an image")
+    for argv, message in [
+        (["render", "teapot", "--out", str(tmp_path / "x.png")], "unknown volume 'teapot'"),
+        (["render", "shells", "--out", str(tmp_path / "x.png"), "--size", "0"],
+         "--size must be >= 1"),
+        (["render", str(bogus), "--out", str(tmp_path / "x.png")], "not an image nibabel"),
+        (["render", "shells", "--out", str(tmp_path)], "is a folder"),
+    ]:
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("volshade: error: ") and message in err
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert cli.main(["render", str(tmp_path / "missing.nii.gz"), "--out",
                      str(tmp_path / "x.png")]) == 2
     assert "missing.nii.gz" in capsys.readouterr().err

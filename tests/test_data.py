@@ -206,6 +206,8 @@ def test_load_nifti_normalize(tmp_path, xyz):
     np.testing.assert_allclose(v, np.transpose(expected, (2, 1, 0)), rtol=1e-6)
     const = _write(tmp_path / "const.nii", np.full((3, 3, 3), 5.0, np.float32), np.eye(4))
     assert np.all(np.asarray(data.load_nifti(const)[0]) == 0.0)
+    with pytest.raises(TypeError, match="`normalize` must be True or False"):
+        data.load_nifti(path, normalize="no")  # a truthy string would normalise
 
 
 def test_load_nifti_reorients_to_ras(tmp_path, xyz):
@@ -266,6 +268,10 @@ def test_load_nifti_missing_file(tmp_path):
     missing = tmp_path / "nope.nii.gz"
     with pytest.raises(FileNotFoundError, match="nope.nii.gz"):
         data.load_nifti(missing)
+    bogus = tmp_path / "bogus.nii.gz"
+    bogus.write_text("not an image")
+    with pytest.raises(ValueError, match="bogus.nii.gz' is not an image nibabel can read"):
+        data.load_nifti(bogus)
 
 
 def test_load_nifti_without_nibabel(tmp_path, xyz, monkeypatch):
@@ -349,3 +355,5 @@ def test_load_bad_downsample(data_dir, monkeypatch):
         data.load("colin27", downsample=0)
     with pytest.raises(TypeError, match="`downsample`"):
         data.load("colin27", downsample=2.0)
+    with pytest.raises(TypeError, match="`normalize` must be True or False"):
+        data.load("colin27", normalize=None)

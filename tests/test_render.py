@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from helpers import check_grad_fd
 
+import volshade as vs
 from volshade.camera import Camera, box_half_extent, intersect_box
 from volshade.render import march, n_samples, save_png
 from volshade.shading import Phong, blinn_phong
@@ -373,6 +374,10 @@ def test_cameras_with_no_image_are_refused():
     assert rays(30.0)[1].shape == (2, 2, 3)
     with pytest.raises(Exception, match=r"`fov` must lie in \(0, 180\)"):
         rays(-30.0)
+    # a traced negative distance would look from the other side, silently
+    eye_at = jax.jit(lambda d: Camera.orbit(distance=d, image_shape=(2, 2)).eye)
+    with pytest.raises(Exception, match="`distance` must be > 0"):
+        jax.block_until_ready(eye_at(-1.0))
     looking_up = jax.jit(lambda u: Camera(eye, zero, u, jnp.asarray(30.0), jnp.asarray(1.0),
                                           image_shape=(2, 2)).rays())
     with pytest.raises(Exception, match="parallel"):
@@ -398,6 +403,17 @@ def test_camera_from_a_view_direction():
     assert abs(eye[2]) < 1e-12
     with pytest.raises(ValueError, match="spacing"):
         Camera.from_view(jnp.array([1.0, 1.0, 0.0]), spacing=(4.0, -1.0, 1.0))
+    # directions in huge or tiny numbers (|view|^2 overflows or underflows in float32)
+    for scale in (1e20, 1e-20):
+        view = jnp.asarray([3.0, 0.0, 4.0], jnp.float32) * scale
+        eye = np.asarray(Camera.from_view(view, image_shape=(2, 2)).eye)
+        np.testing.assert_allclose(eye, [1.5, 0.0, 2.0], atol=1e-6)
+    # along d the azimuth is undefined: taken as 0, with a zero (finite) gradient
+    scene = vs.Scene(volume=vs.data.phantom("shells", shape=8),
+                     transfer=vs.transfer.preset("shells"))
+    pixel = jax.grad(lambda v: vs.render(scene, Camera.from_view(v, image_shape=(4, 4)))[1, 2, 3])
+    for view in ([1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 1e-3, 0.0]):
+        assert np.all(np.isfinite(pixel(jnp.asarray(view))))
     # lists and an int image size are accepted, as elsewhere in the API
     cam = Camera(eye=[2.0, 0.0, 0.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0], fov=30.0,
                  width=1.0, image_shape=5)
@@ -432,6 +448,12 @@ def test_camera_geometry_and_png(tmp_path):
         save_png(tmp_path / "x.png", np.full((2, 2, 3), 255, np.uint8))
     save_png(tmp_path / "bf16.png", jnp.full((2, 2, 3), 0.5, jnp.bfloat16))  # a float, written
     assert int(io.imread(tmp_path / "bf16.png")[0, 0, 0]) in (127, 128)
+    save_png(tmp_path / "mask.png", np.array([[True, False]]))  # a mask: True is white
+    np.testing.assert_array_equal(io.imread(tmp_path / "mask.png"), [[255, 0]])
+    with pytest.raises(TypeError, match="real numbers in"):
+        save_png(tmp_path / "x.png", np.full((2, 2), 0.5 + 0j))
+    with pytest.raises(ValueError, match="empty"):
+        save_png(tmp_path / "x.png", np.zeros((0, 4, 3)))
 
 
 def test_intersect_box_matches_the_numpy_slab_method():

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import safe_div, safe_normalize
+from ._numerics import safe_div, safe_norm, safe_normalize
 from ._types import Array, Float
 
 _PROJECTIONS = ("perspective", "orthographic")
@@ -152,6 +152,9 @@ class Camera(eqx.Module):
             raise ValueError(f"{where}: `distance` must be > 0 (scene units), got "
                              f"{dist.tolist()!r}; to look from the other side, change "
                              f"`azimuth` and `elevation`.")
+        if dist is None:  # traced: a negative distance would look from the other side
+            length = _checks.refuse(length, [(~jnp.all(length > 0), "`distance` must be > 0 "
+                                              "(scene units).")], where)
         a, e = jnp.deg2rad(a), jnp.deg2rad(e)
         direction = jnp.stack([jnp.sin(e), jnp.cos(e) * jnp.cos(a), jnp.cos(e) * jnp.sin(a)])
         # Looking straight along d, "up" must come from the azimuth instead.
@@ -168,7 +171,8 @@ class Camera(eqx.Module):
         ``view`` is a ``(3,)`` direction from the volume towards the viewer in
         ``(d, h, w)`` order, as :func:`volshade.most_salient_view` returns; the
         other keywords are :meth:`orbit`'s (``distance``, ``image_shape``, ...).
-        Straight along ``±d`` the azimuth is undefined and taken as 0.
+        Straight along ``±d`` the azimuth is undefined and taken as 0 (with a zero
+        gradient, so a render's gradient in ``view`` stays finite there).
 
         The viewpoint functions score directions in voxel index space (digital
         lines through the voxel grid); give the volume's voxel ``spacing`` (mm) to
@@ -195,9 +199,16 @@ class Camera(eqx.Module):
         view = _checks.refuse(view, [(~jnp.all(jnp.isfinite(view)) | ~jnp.any(view != 0),
                                       "`view` must be a finite, non-zero (3,) direction.")],
                               where)
+        # scaled to a largest component of 1 first: |view|^2 would overflow or underflow
+        # for directions given in very large or very small numbers
+        view = view / jnp.max(jnp.abs(view))
         v = safe_normalize(view * jnp.asarray(_checks.spacing(spacing, where), view.dtype))
-        elevation = jnp.rad2deg(jnp.arcsin(jnp.clip(v[0], -1, 1)))
-        azimuth = jnp.rad2deg(jnp.arctan2(v[2], v[1]))
+        # arctan2 of the distance to the d axis rather than arcsin(v_d): a finite slope
+        # at the poles, where the azimuth (undefined) is 0 with a zero gradient
+        pole = (v[1] == 0) & (v[2] == 0)
+        elevation = jnp.rad2deg(jnp.arctan2(v[0], safe_norm(v[1:])))
+        azimuth = jnp.where(pole, 0, jnp.rad2deg(jnp.arctan2(jnp.where(pole, 0, v[2]),
+                                                              jnp.where(pole, 1, v[1]))))
         return cls.orbit(azimuth=azimuth, elevation=elevation, **orbit_kwargs)
 
     def basis(self) -> tuple[Array, Array, Array]:

@@ -45,8 +45,7 @@ def _load_volume(spec: str, downsample: int, size: int):
     if pathlib.Path(spec).suffix in (".nii", ".gz"):
         return data.load_nifti(spec, downsample=downsample)
     valid = ", ".join([*data.PHANTOMS, *data.DATASETS])
-    raise SystemExit(f"volshade: unknown volume {spec!r}; use one of {valid} "
-                     f"or a .nii/.nii.gz path.")
+    raise ValueError(f"unknown volume {spec!r}; use one of {valid} or a .nii/.nii.gz path.")
 
 
 def _run_jobs(jobs: list[Job], out: pathlib.Path) -> list[tuple[str, float]]:
@@ -129,6 +128,8 @@ def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
 
 
 def render_command(args: argparse.Namespace) -> int:
+    if args.out.is_dir():  # found before the render, not after it
+        raise ValueError(f"--out {str(args.out)!r} is a folder; give the PNG's file name.")
     vol, spacing = _load_volume(args.volume, args.downsample, args.size)
     tf = transfer.preset(args.preset)
     cam = Camera.orbit(azimuth=args.azimuth, elevation=args.elevation, distance=args.distance,
@@ -189,14 +190,14 @@ def _check_message(err: Exception) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    for name in ("size", "image", "downsample"):
-        if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
-            raise SystemExit(f"volshade: --{name} must be >= 1, got {getattr(args, name)}.")
     try:
+        for name in ("size", "image", "downsample"):
+            if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
+                raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}.")
         if args.command == "demo":
             return demo(args.out, args.size, args.image, args.downsample)
         return render_command(args)
-    except (ValueError, TypeError, FileNotFoundError, ImportError) as err:
+    except (ValueError, TypeError, OSError, ImportError) as err:
         print(f"volshade: error: {err}", file=sys.stderr)
         return 2
     except eqx.EquinoxRuntimeError as err:  # a run-time check (e.g. NaN in a parameter)

@@ -356,8 +356,10 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ImportError: nibabel is not installed (``pip install "volshade[data]"``).
-        ValueError: the image is not 3-D (a 4-D image is accepted when its 4th
-            dimension is 1), contains NaN or inf, or ``downsample`` < 1.
+        ValueError: the file is not an image nibabel can read, the image is not 3-D
+            (a 4-D image is accepted when its 4th dimension is 1), contains NaN or
+            inf, or ``downsample`` < 1.
+        TypeError: ``normalize`` not ``True`` or ``False``.
 
     Example:
         >>> vol, spacing = load_nifti("colin27_ch2_t1_head.nii.gz")  # doctest: +SKIP
@@ -366,6 +368,7 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     """
     where = "volshade.data.load_nifti"
     factor = _checks.positive_int(downsample, "downsample", where)
+    normalize = _checks.flag(normalize, "normalize", where)
     path = pathlib.Path(os.fspath(path)).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"{where}: no such file: {str(path)!r}.")
@@ -374,7 +377,11 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     except ImportError as err:
         raise ImportError(f'{where} needs nibabel; install it with `pip install "volshade[data]"` '
                           f"(or `pip install nibabel`).") from err
-    img = nibabel.as_closest_canonical(nibabel.load(str(path)))
+    try:
+        img = nibabel.as_closest_canonical(nibabel.load(str(path)))
+    except nibabel.filebasedimages.ImageFileError as err:
+        raise ValueError(f"{where}: {str(path)!r} is not an image nibabel can read (NIfTI "
+                         f"'.nii' or '.nii.gz'): {err}") from err
     shape = img.shape
     if len(shape) < 3 or any(n != 1 for n in shape[3:]):
         raise ValueError(f"{where}: {str(path)!r} has shape {shape}; only 3-D volumes (or 4-D "
@@ -499,6 +506,7 @@ def load(name: str, *, downsample: int = 1,
 
     Raises:
         ValueError: unknown ``name``, or ``downsample`` < 1.
+        TypeError: ``normalize`` not ``True`` or ``False``.
         FileNotFoundError: the data is not on this machine; the message says how to
             get it (set ``VOLSHADE_DATA``, ``apt-get install mricron-data``, or the
             nilearn 0.14.1 wheel).
@@ -512,4 +520,5 @@ def load(name: str, *, downsample: int = 1,
     where = "volshade.data.load"
     _checks.option(name, _FILES, "dataset", where)
     _checks.positive_int(downsample, "downsample", where)
+    _checks.flag(normalize, "normalize", where)
     return load_nifti(data_path(name), normalize=normalize, downsample=downsample)

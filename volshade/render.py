@@ -263,7 +263,8 @@ def save_png(path, image: Float[Array, "H W C"]) -> None:
     ``(H, W)`` one (a slice of an ambient-occlusion volume) as an 8-bit grey PNG.
 
     Values above 1 (added-up highlights) are clipped to white when written;
-    the alpha channel is dropped, since the background is already blended in.
+    the alpha channel is dropped, since the background is already blended in. A
+    boolean mask is written white where True.
     """
     from skimage import io, util
 
@@ -271,11 +272,18 @@ def save_png(path, image: Float[Array, "H W C"]) -> None:
     if not (img.ndim == 2 or img.ndim == 3 and img.shape[-1] in (3, 4)):
         raise ValueError(f"volshade.save_png: `image` must be (H, W), (H, W, 3) or "
                          f"(H, W, 4), got {img.shape}.")
+    if img.size == 0:
+        raise ValueError(f"volshade.save_png: `image` is empty, shape {img.shape}.")
+    if img.dtype == np.bool_:  # a mask: True is white
+        img = img.astype(np.float32)
     if np.issubdtype(img.dtype, np.integer):
         # np.clip(img, 0, 1) would turn an 8-bit white 255 into 1 of 255
         raise TypeError(f"volshade.save_png: `image` must be in [0, 1] (a render), got "
                         f"integers of dtype {img.dtype}; convert them with "
                         f"skimage.util.img_as_float, or write them with skimage.io.imsave.")
+    if not jnp.issubdtype(img.dtype, jnp.floating):
+        raise TypeError(f"volshade.save_png: `image` must hold real numbers in [0, 1], got "
+                        f"dtype {img.dtype}.")
     if not np.all(np.isfinite(img)):
         raise ValueError("volshade.save_png: `image` contains NaN or inf.")
     pixels = img if img.ndim == 2 else img[..., :3]
