@@ -42,7 +42,8 @@ def test_cli_errors(tmp_path, capsys):
         (["render", "shells", "--out", str(tmp_path / "x.png"), "--size", "0"],
          "--size must be >= 1"),
         (["render", str(bogus), "--out", str(tmp_path / "x.png")], "not an image nibabel"),
-        (["render", "shells", "--out", str(tmp_path)], "is a folder"),
+        (["render", "shells", "--out", str(tmp_path)], "--out must name a .png file"),
+        (["render", "shells", "--out", str(tmp_path / "noext")], "--out must name a .png"),
     ]:
         assert cli.main(argv) == 2
         err = capsys.readouterr().err

@@ -274,6 +274,19 @@ def test_load_nifti_missing_file(tmp_path):
         data.load_nifti(bogus)
 
 
+def test_load_nifti_refuses_cut_short_and_complex_files(tmp_path, xyz):
+    noise = np.random.default_rng(0).random((16, 16, 16)).astype(np.float32)  # incompressible
+    whole = _write(tmp_path / "whole.nii.gz", noise, np.eye(4)).read_bytes()
+    cut = tmp_path / "cut.nii.gz"
+    cut.write_bytes(whole[: int(len(whole) * 0.9)])  # the header reads, the voxels do not
+    with pytest.raises(ValueError, match="could not be read whole"):
+        data.load_nifti(cut)
+    # get_fdata would keep the real part, with only a NumPy warning
+    complex_path = _write(tmp_path / "complex.nii", xyz.astype(np.complex64), np.eye(4))
+    with pytest.raises(ValueError, match="holds complex64 voxels"):
+        data.load_nifti(complex_path)
+
+
 def test_load_nifti_without_nibabel(tmp_path, xyz, monkeypatch):
     path = _write(tmp_path / "tiny.nii", xyz, np.eye(4))
     monkeypatch.setitem(sys.modules, "nibabel", None)

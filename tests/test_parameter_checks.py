@@ -93,6 +93,13 @@ def test_nested_lists_become_arrays():
     # the options lao() refuses, refused when the module is built, not at its first call
     (lambda: vs.LocalAmbientOcclusion(3.0, opacity_correction="no"), TypeError,
      "`opacity_correction` must be True or False"),
+    # a truthy string would silently switch these on
+    (lambda: vs.viewpoint_saliency(DENSITY, DENSITY, icosphere_points(0), per_area="no"),
+     TypeError, "viewpoint_saliency: `per_area` must be True or False"),
+    (lambda: vs.most_salient_view(DENSITY, DENSITY, icosphere_points(0), per_area="no"),
+     TypeError, "most_salient_view: `per_area` must be True or False"),
+    (lambda: vs.gradient.gradient_magnitude(jnp.ones((2, 3)), scaled="no"), TypeError,
+     "gradient_magnitude: `scaled` must be True or False"),
     (lambda: vs.LocalAmbientOcclusion(3.0, brick_size=0), ValueError, "`brick_size` must be >= 1"),
     (lambda: vs.LocalAmbientOcclusion(3.0, brick_size=4.0), TypeError, "`brick_size` must be"),
     (lambda: vs.LocalAmbientOcclusion(3.0, max_radius=2.0), ValueError,

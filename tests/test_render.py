@@ -412,8 +412,9 @@ def test_camera_from_a_view_direction():
     scene = vs.Scene(volume=vs.data.phantom("shells", shape=8),
                      transfer=vs.transfer.preset("shells"))
     pixel = jax.grad(lambda v: vs.render(scene, Camera.from_view(v, image_shape=(4, 4)))[1, 2, 3])
-    for view in ([1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 1e-3, 0.0]):
+    for view in ([1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 1e-3, 0.0], [1.0, 1e-200, 0.0]):
         assert np.all(np.isfinite(pixel(jnp.asarray(view))))
+    assert np.all(np.isfinite(pixel(jnp.asarray([1.0, 1e-20, 0.0], jnp.float32))))
     # lists and an int image size are accepted, as elsewhere in the API
     cam = Camera(eye=[2.0, 0.0, 0.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0], fov=30.0,
                  width=1.0, image_shape=5)
@@ -433,6 +434,9 @@ def test_camera_geometry_and_png(tmp_path):
     assert np.all(np.isfinite(top.rays()[1]))
     np.testing.assert_allclose(top.basis()[0], [-1, 0, 0], atol=1e-6)
     assert n_samples((10, 10, 10), (1, 1, 1), 1.0) == 19
+    for step in (1e-30, 5e-324):  # more samples than a march can index: named, not an MLIR error
+        with pytest.raises(ValueError, match="`step` = .* samples per ray"):
+            n_samples((10, 10, 10), (1, 1, 1), step)
     save_png(tmp_path / "img.png", jnp.ones((4, 6, 4)) * 0.5)
     from skimage import io
 

@@ -202,5 +202,14 @@ def test_integer_bool_and_list_volumes_are_classified_as_their_values():
         np.testing.assert_allclose(IntervalFeature(0.5, 2.5).opacity(volume, tf),
                                    [0.0, 0.5, 0.65, 0.0], rtol=1e-15)
     np.testing.assert_allclose(tf.opacity(jnp.array([False, True])), [0.0, 0.5])
+    # half precision is classified in float32, by an interval alone and among features
+    # alike: float16(0.1) = 0.099976 lies below an interval starting at 0.1 (in float16
+    # the end would round to the same 0.099976 and take it in)
+    half = jnp.asarray([0.1, 0.5], jnp.float16).reshape(1, 1, 2)
+    interval = IntervalFeature(0.1, 1.0)
+    wide = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (1.0, 1, 1, 1, 1.0)])
+    np.testing.assert_array_equal(interval.opacity(half, wide).ravel(), [0.0, 0.5])
+    np.testing.assert_array_equal(feature_opacities(half, [interval], base=wide).ravel(),
+                                  [0.0, 0.5])
     with pytest.raises(TypeError, match="`volume` must have a real floating or integer dtype"):
         tf.opacity(jnp.array([1j]))

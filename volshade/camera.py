@@ -204,8 +204,9 @@ class Camera(eqx.Module):
         view = view / jnp.max(jnp.abs(view))
         v = safe_normalize(view * jnp.asarray(_checks.spacing(spacing, where), view.dtype))
         # arctan2 of the distance to the d axis rather than arcsin(v_d): a finite slope
-        # at the poles, where the azimuth (undefined) is 0 with a zero gradient
-        pole = (v[1] == 0) & (v[2] == 0)
+        # at the poles, where the azimuth (undefined) is 0 with a zero gradient; "at the
+        # pole" is where v_h^2 + v_w^2, the denominator of arctan2's slope, is 0
+        pole = jnp.square(v[1]) + jnp.square(v[2]) == 0
         elevation = jnp.rad2deg(jnp.arctan2(v[0], safe_norm(v[1:])))
         azimuth = jnp.where(pole, 0, jnp.rad2deg(jnp.arctan2(jnp.where(pole, 0, v[2]),
                                                               jnp.where(pole, 1, v[1]))))

@@ -128,8 +128,9 @@ def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
 
 
 def render_command(args: argparse.Namespace) -> int:
-    if args.out.is_dir():  # found before the render, not after it
-        raise ValueError(f"--out {str(args.out)!r} is a folder; give the PNG's file name.")
+    # found before the render, not after it
+    if args.out.is_dir() or args.out.suffix.lower() != ".png":
+        raise ValueError(f"--out must name a .png file, got {str(args.out)!r}.")
     vol, spacing = _load_volume(args.volume, args.downsample, args.size)
     tf = transfer.preset(args.preset)
     cam = Camera.orbit(azimuth=args.azimuth, elevation=args.elevation, distance=args.distance,

@@ -356,7 +356,8 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ImportError: nibabel is not installed (``pip install "volshade[data]"``).
-        ValueError: the file is not an image nibabel can read, the image is not 3-D
+        ValueError: the file is not an image nibabel can read (or is cut short), its
+            voxels are not real numbers, the image is not 3-D
             (a 4-D image is accepted when its 4th dimension is 1), contains NaN or
             inf, or ``downsample`` < 1.
         TypeError: ``normalize`` not ``True`` or ``False``.
@@ -387,7 +388,16 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
         raise ValueError(f"{where}: {str(path)!r} has shape {shape}; only 3-D volumes (or 4-D "
                          f"with a single volume) are supported; split the series first "
                          f"(e.g. `nibabel.four_to_three`).")
-    data = np.asarray(img.get_fdata(dtype=np.float64))
+    if not np.issubdtype(img.get_data_dtype(), np.number) or \
+            np.issubdtype(img.get_data_dtype(), np.complexfloating):
+        # get_fdata would keep only the real part of complex voxels, with a mere warning
+        raise ValueError(f"{where}: {str(path)!r} holds {img.get_data_dtype()} voxels; only "
+                         f"real intensities can be rendered (take e.g. the magnitude first).")
+    try:
+        data = np.asarray(img.get_fdata(dtype=np.float64))
+    except (OSError, EOFError) as err:  # the header read, the voxels are cut short
+        raise ValueError(f"{where}: {str(path)!r} could not be read whole (a truncated or "
+                         f"damaged file?): {err}") from err
     data = data.reshape(shape[:3])
     n_bad = int(np.size(data) - np.count_nonzero(np.isfinite(data)))
     if n_bad:

@@ -138,5 +138,6 @@ def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = Fal
     composition and the voxel saliency of Ruiz et al. (eq. 4) both use this. The
     last axis may hold several stacked gradients (e.g. one per colour channel).
     """
+    scaled = _checks.flag(scaled, "scaled", "volshade.gradient.gradient_magnitude")
     magnitude = safe_norm(gradient, axis=-1)
     return safe_div(magnitude, jnp.max(magnitude)) if scaled else magnitude

@@ -649,9 +649,7 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     alpha = _checks.volume(alpha, "alpha", where, unit_range=True)
     dtype = alpha.dtype
     samples = _checks.positive_int(samples, "samples", where)
-    if not isinstance(opacity_correction, bool):
-        raise TypeError(f"{where}: `opacity_correction` must be True or False, "
-                        f"got {opacity_correction!r}.")
+    opacity_correction = _checks.flag(opacity_correction, "opacity_correction", where)
     if brick_size is not None:
         brick_size = _checks.positive_int(brick_size, "brick_size", where)
     if max_radius is not None:

@@ -41,9 +41,19 @@ from .transfer import TransferFunction
 
 
 def n_samples(shape: tuple[int, int, int], spacing, step: float) -> int:
-    """Static number of samples per ray: the box diagonal over the step, plus one."""
+    """Static number of samples per ray: the box diagonal over the step, plus one.
+
+    Raises:
+        ValueError: more samples than a march can index (``2**31 - 1``).
+    """
     diagonal = float(np.linalg.norm(np.asarray(shape) * np.asarray(spacing)))
-    return math.ceil(diagonal / step) + 1
+    ratio = diagonal / step
+    if not ratio < np.iinfo(np.int32).max - 1:
+        raise ValueError(f"volshade.render: `step` = {step!r} gives {ratio:.3g} samples per ray "
+                         f"(the volume's diagonal, {diagonal:.4g} mm, over the step), more "
+                         f"than a march can index (2**31 - 1); use a step of about half the "
+                         f"voxel size, e.g. {float(np.min(spacing)) / 2:.3g}.")
+    return math.ceil(ratio) + 1
 
 
 def march(

@@ -278,6 +278,7 @@ def _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area, whe
     """:func:`viewpoint_saliency` with errors naming ``where``; also returns the
     normalised ``(V, 3)`` viewpoints as NumPy."""
     _checks.option(visibility, _VISIBILITY, "visibility", where)
+    per_area = _checks.flag(per_area, "per_area", where)
     saliency, opacity = _check_pair(saliency, opacity, where)
     dirs = _direction_array(viewpoints, "viewpoints", where)
     total = _viewpoint_sums(saliency, opacity, dirs=_static_dirs(dirs), visibility=visibility,

@@ -162,11 +162,14 @@ class TransferFunction(eqx.Module):
                 ) -> Float[Array, "*shape"]:
         r"""Opacity of each value; with ``step`` (mm), corrected to that segment length.
 
+        Integer and bool volumes are classified as their values (as floats).
+
         Raises:
             ValueError: NaN or inf in ``volume`` (interpolation would clamp an
                 infinite value to the last control point's opacity, silently), or
                 values outside ``[points[0], points[-1]]`` (the same clamp); a
                 negative or non-finite ``step``.
+            TypeError: ``volume`` not real numbers (complex, strings).
         """
         tf, volume = self._checked(volume, f"{_WHERE}.opacity")
         return tf._opacity(volume, _step(step, f"{_WHERE}.opacity"))
@@ -275,7 +278,8 @@ def feature_opacities(
 def _feature_opacities(volume, features, base, step, where: str) -> Array:
     """:func:`feature_opacities`, its errors naming ``where`` (the function called)."""
     features = _feature_tuple(features, where)
-    volume = _checks.volume(volume, "volume", where)
+    # half precision as float32, as every feature's classification (and _select) reads it
+    volume = _checks.at_least_float32(_checks.volume(volume, "volume", where))
     if base is not None and not isinstance(base, TransferFunction):
         raise TypeError(f"{where}: `base` must be a volshade.TransferFunction (the one the "
                         f"interval features select from), got {type(base).__name__}.")
