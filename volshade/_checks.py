@@ -69,6 +69,12 @@ def at_least_float32(arr: Array) -> Array:
     return arr
 
 
+def as_working_float(x: Any, name: str, where: str) -> Array:
+    """``x`` as an array of float32 or wider: integers and bools converted (interpolation
+    and comparison in an integer dtype would truncate), half precision widened."""
+    return at_least_float32(as_float_array(x, name, where))
+
+
 def flag(value: Any, name: str, where: str) -> bool:
     """A static on/off option: ``True`` or ``False`` only (a string such as ``"no"`` is
     truthy and would silently switch the option on)."""

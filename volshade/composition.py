@@ -305,7 +305,8 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     (see :class:`ImportanceState`). The paper gives no initial importance $I_0$;
     an empty ray ($\alpha_0 = 0$) is taken as $I_0 = -\infty$, the value its
     eq. 6a/7 derivation implies, so the first sample gives
-    $I_1 = I_s + \ln\alpha_s$ (starting from $I_0 = 0$ would not). In terms of $K$ the modulation is
+    $I_1 = I_s + \ln\alpha_s$ (starting from $I_0 = 0$ would not). In terms of
+    $K$ the modulation is
     $m = e^{\min(0, K_i - I_s)}$ and eq. 8e reads, with $M = \max(K_i, I_s)$ and
     $y = e^{I_s - M}$ (so that $e^{K_i - M} = m$),
 

@@ -407,8 +407,7 @@ def _gaussian_smooth(volume: Float[Array, "D H W"], sigma: float) -> Float[Array
         sigma: standard deviation in voxels (static, > 0); the kernel is truncated at
             ``4 sigma`` and normalised, and the edges are extended (``"nearest"``).
     """
-    volume = _checks.at_least_float32(_checks.as_float_array(volume, "volume",
-                                                              "volshade.ObscuranceParams"))
+    volume = _checks.as_working_float(volume, "volume", "volshade.ObscuranceParams")
     radius = int(4.0 * sigma + 0.5)
     x = np.arange(-radius, radius + 1)
     kernel = np.exp(-0.5 * (x / sigma) ** 2)

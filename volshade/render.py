@@ -149,7 +149,7 @@ def medium(
     """The view-independent part of :func:`march` (same arguments): its checks, and
     the gradient volume when the shading or the compositing needs it."""
     where = "volshade.render"
-    volume = _checks.at_least_float32(_checks.as_float_array(volume, "volume", where))
+    volume = _checks.as_working_float(volume, "volume", where)
     _checks.check_ndim(volume, 3, "volume", where, "(D, H, W)")  # finite: with the transfer
     spacing = _checks.spacing(spacing, where)
     step = _checks.positive_float(step, "step", where)

@@ -45,11 +45,6 @@ def _step(step: Any, where: str) -> Array | None:
                                   "length of 0 has opacity 0).")], where)
 
 
-def _as_intensities(volume: Any, where: str) -> Array:
-    """``volume`` as an array of float32 or wider (integer and bool volumes converted)."""
-    return _checks.at_least_float32(_checks.as_float_array(volume, "volume", where))
-
-
 class TransferFunction(eqx.Module):
     """Piecewise-linear 1D transfer function (intensity -> RGB colour, opacity).
 
@@ -105,7 +100,8 @@ class TransferFunction(eqx.Module):
         would truncate every opacity and colour to 0; half precision as float32:
         ``jnp.interp`` refuses it)."""
         tf = _checks.refuse(self, self._problems(), _WHERE)
-        volume = _checks.finite(_as_intensities(volume, where), "volume", where)
+        volume = _checks.finite(_checks.as_working_float(volume, "volume", where), "volume",
+                                where)
         # in the volume's dtype, as _interp classifies: float32(0.3) > 0.3 in float64
         points = tf.points.astype(volume.dtype)
         outside = (jnp.min(volume) < points[0]) | (jnp.max(volume) > points[-1])
@@ -218,7 +214,7 @@ class IntervalFeature(eqx.Module):
     def opacity(self, volume: Array, base: TransferFunction, *,
                 step: float | Array | None = None) -> Array:
         """``base.opacity(volume, step=step)`` inside ``[low, high]``, 0 outside."""
-        volume = _as_intensities(volume, "volshade.IntervalFeature.opacity")
+        volume = _checks.as_working_float(volume, "volume", "volshade.IntervalFeature.opacity")
         return self._select(volume, base.opacity(volume, step=step))
 
     def _select(self, volume: Array, base_opacity: Array) -> Array:
