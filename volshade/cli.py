@@ -1,10 +1,11 @@
 """The ``volshade`` command: ``volshade demo`` and ``volshade render VOLUME``.
 
-    volshade demo [--out DIR] [--size N] [--image N]
+    volshade demo [--out DIR] [--size N] [--image N] [--downsample F]
     volshade render VOLUME --out img.png [--preset NAME] [--azimuth A] [--elevation E] ...
 
 VOLUME is a phantom name (shells, corner, orange, bucky, noise), a real-data
-name (colin27, mni152: found via VOLSHADE_DATA) or a path to a NIfTI file.
+name (colin27, mni152, mni152_gm, mni152_wm: found via VOLSHADE_DATA) or a path to a
+NIfTI file.
 """
 
 import argparse

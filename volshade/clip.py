@@ -91,7 +91,18 @@ def _lead(vector: Array, like: Array) -> Array:
 class Clip(eqx.Module):
     """A clip shape: ``centre`` ``(3,)`` and ``rotation`` ``(3, 3)`` (columns: the
     local axes) in voxel index coordinates. Subclasses give the signed distance in
-    the shape's local frame and name their size leaves in ``sizes``."""
+    the shape's local frame and name their size leaves in ``sizes``.
+
+    Every shape is built with keyword arguments: ``centre`` (3 numbers, voxels),
+    ``rotation`` (optional 3x3 orthonormal matrix, default the identity) and its
+    sizes (voxels, > 0).
+
+    Raises:
+        ValueError: a ``centre`` that is not 3 finite numbers, a ``rotation`` that is
+            not a 3x3 orthonormal matrix, a size that is not finite and > 0 (when
+            known; traced values where the masks are computed).
+        TypeError: a value that is not a real number.
+    """
 
     centre: Float[Array, "3"]
     rotation: Float[Array, "3 3"]
@@ -282,7 +293,20 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
 
 
 def clip_opacity(alpha: Float[Array, "D H W"], clip: Clip) -> Float[Array, "D H W"]:
-    """``alpha`` with the voxels ``clip`` removes set to 0 (same dtype)."""
+    """``alpha`` with the voxels ``clip`` removes set to 0 (same dtype).
+
+    Args:
+        alpha: ``(D, H, W)`` opacities (NaN or inf is refused).
+        clip: a clip shape (:class:`SphereClip`, :class:`BoxClip`,
+            :class:`TorusClip`, :class:`HalfSpaceClip`).
+
+    Returns:
+        ``(D, H, W)``: ``alpha``, 0 at the voxels whose centres lie inside ``clip``.
+
+    Raises:
+        ValueError: ``alpha`` not 3-D or not finite, a bad clip leaf.
+        TypeError: ``clip`` not a clip shape.
+    """
     where = "volshade.clip_opacity"
     alpha = _checks.volume(alpha, "alpha", where)
     return jnp.where(clip_mask(alpha.shape, _clip(clip, where)), jnp.zeros_like(alpha), alpha)

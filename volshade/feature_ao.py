@@ -294,6 +294,19 @@ class FeatureAmbientOcclusion(eqx.Module):
     features get gradients through their control values; interval ends select voxels,
     so theirs is zero.
 
+    Args:
+        features: a non-empty list of :class:`~volshade.TransferFunction` or
+            :class:`~volshade.IntervalFeature` features.
+        lao: the shared LAO parameters; default ``LocalAmbientOcclusion()`` (radius
+            16 voxels, offset 1, 42 directions, 16 samples).
+        merge: ``"max"`` (default), ``"feature"`` or ``"neighbourhood"``
+            (:data:`MERGES`).
+
+    Raises:
+        ValueError / TypeError: no features, ``features`` not a list of features,
+            ``lao`` not a :class:`~volshade.LocalAmbientOcclusion`, an unknown
+            ``merge``.
+
     Example:
         >>> tf = vs.transfer.preset("shells")
         >>> params = FeatureAmbientOcclusion(

@@ -394,6 +394,11 @@ class GaussNewtonLineSearch(optx.AbstractGaussNewton):
         rtol, atol: optimistix's Cauchy termination: the parameters (as the solver
             sees them: through the bounds' bijections) and the residuals both change
             by less than ``atol + rtol * |value|`` in one step.
+        norm: the norm of that test (default ``optimistix.max_norm``).
+        descent: the step (default ``optimistix.NewtonDescent`` with a least-squares
+            linear solve, ``lineax.AutoLinearSolver(well_posed=False)``).
+        search: the line search (default ``optimistix.BacktrackingArmijo()``).
+        verbose: optimistix's progress printer (default: prints nothing).
     """
 
     rtol: float

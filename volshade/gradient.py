@@ -91,6 +91,10 @@ def regression_gradient(
         ``(D, H, W, 3)`` gradient $(\partial_d, \partial_h, \partial_w)$ in value
         units per mm, in the dtype of ``volume``.
 
+    Raises:
+        ValueError: ``volume`` not 3-D or not finite, ``size`` not 3 or 5, a bad
+            ``spacing`` or an unknown ``weighting``.
+
     References:
         Neumann, Csébfalvi, König, Gröller: Gradient estimation in volume data using
         4D linear regression. Computer Graphics Forum 19(3), 2000.

@@ -774,9 +774,10 @@ def lao(
 
     Raises:
         ValueError: ``alpha`` not 3-D, bad ``directions``/``weights`` shape, empty
-            direction set, ``samples < 1``, ``brick_size < 1``, ``radius <= offset``
-            or ``offset < 0`` (at trace time when they are numbers), an unknown
-            ``implementation``.
+            direction set, ``samples < 1``, ``brick_size < 1``, ``max_radius`` not a
+            finite number > 0, a non-finite ``radius`` or ``offset``,
+            ``radius <= offset`` or ``offset < 0`` (at trace time when they are
+            numbers), an unknown ``implementation``.
         TypeError: non-numeric inputs.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
             ``alpha`` outside ``[0, 1]`` or non-finite, ``radius <= offset``,
@@ -844,6 +845,20 @@ class LocalAmbientOcclusion(eqx.Module):
     can grow the radius up to that without recompiling, and beyond it gets a clear
     error asking for a larger ``max_radius``. ``directions`` is an array leaf but is
     not differentiated.
+
+    Args:
+        radius: $R$ in voxels (default 16), an array leaf; a leading batch axis makes
+            a Module of several settings (then ``jax.vmap``).
+        offset: $a$ in voxels (default 1), an array leaf.
+        directions: ``(L, 3)`` directions, or an int ``L`` for
+            ``volshade.directions.fibonacci(L)`` (default 42).
+        samples, weights, opacity_correction, brick_size, implementation: as for
+            :func:`lao` (defaults 16, equal weights, False, no bricks, ``"xla"``).
+        max_radius: static bound on the radius (voxels); default twice ``radius``.
+
+    Raises:
+        ValueError / TypeError: the errors :func:`lao` raises for these arguments,
+            when the Module is built rather than at its first call.
 
     Example:
         >>> params = LocalAmbientOcclusion(4.0, directions=12, samples=8, max_radius=6.0)

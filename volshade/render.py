@@ -272,9 +272,18 @@ def save_png(path, image: Float[Array, "H W C"]) -> None:
     """Write an ``(H, W, 3)`` or ``(H, W, 4)`` image in [0, 1] as an 8-bit RGB PNG, or an
     ``(H, W)`` one (a slice of an ambient-occlusion volume) as an 8-bit grey PNG.
 
-    Values above 1 (added-up highlights) are clipped to white when written;
-    the alpha channel is dropped, since the background is already blended in. A
-    boolean mask is written white where True.
+    Values above 1 (added-up highlights) are clipped to white and values below 0 to
+    black when written; the alpha channel is dropped, since the background is already
+    blended in. A boolean mask is written white where True.
+
+    Args:
+        path: the file to write (its extension sets the format: ``.png``).
+        image: ``(H, W)``, ``(H, W, 3)`` or ``(H, W, 4)`` floats (or bools).
+
+    Raises:
+        ValueError: another shape, an empty image, NaN or inf.
+        TypeError: an integer image (convert it with ``skimage.util.img_as_float``)
+            or one that is not real numbers.
     """
     from skimage import io, util
 

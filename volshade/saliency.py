@@ -483,10 +483,26 @@ class SaliencyModulation(eqx.Module):
 
     The scene's obscurance (grey, of the transfer-function opacity) gives the
     saliency (:func:`saliency`), and the renderer multiplies every sample's
-    opacity by :func:`opacity_factor` of it. ``threshold`` and ``d_max`` are array
-    leaves (changing them does not recompile); the rest is static. ``d_max`` gets a
-    gradient; ``threshold`` does not (the factor is a step at the threshold, so its
-    derivative there is 0 almost everywhere).
+    opacity by :func:`volshade.saliency.opacity_factor` of it. ``threshold`` and
+    ``d_max`` are array leaves (changing them does not recompile); the rest is
+    static. ``d_max`` gets a gradient; ``threshold`` does not (the factor is a step
+    at the threshold, so its derivative there is 0 almost everywhere).
+
+    Attributes:
+        threshold: saliency below which voxels become transparent (default 0.2).
+        d_max: obscurance distance in voxels (default 32).
+        rho: the obscurance's rho (:data:`volshade.obscurance.RHO_FUNCTIONS` name,
+            default ``"sqrt"``).
+        level: icosphere level of the obscurance directions (default 1: 42).
+        size: regression neighbourhood of the saliency, 5 (default) or 3.
+        multiply: multiply the opacity by the saliency (default True).
+        boost_top: ``None`` (default) or the top fraction of the saliency range whose
+            opacity is doubled (:func:`modulate_opacity`).
+
+    Raises:
+        ValueError / TypeError: a non-finite ``threshold``, a bad ``d_max``, an
+            unknown ``rho``, a ``level`` other than 0, 1 or 2, a ``size`` other than 3
+            or 5, a ``multiply`` that is not a bool, a ``boost_top`` outside (0, 1].
     """
 
     threshold: Float[Array, ""] = eqx.field(

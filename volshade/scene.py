@@ -337,7 +337,8 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
         sequence of cameras, a list of those images, one per camera, in order.
 
     Raises:
-        TypeError: ``camera`` is not a camera or a non-empty list or tuple of them.
+        TypeError: ``scene`` is not a :class:`Scene`; ``camera`` is not a camera or a
+            non-empty list or tuple of them.
         ValueError / EquinoxRuntimeError: NaN or inf in a scene or camera parameter
             (named), and the checks of the effects and of
             :func:`~volshade.render.march`.
