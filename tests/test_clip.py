@@ -110,8 +110,9 @@ def test_bad_clips_raise_clear_errors():
         vs.TorusClip(centre=(1.0, 2.0, 3.0), major=2.0, minor=1.0, rotation=np.eye(2))
     with pytest.raises(ValueError, match="`half_size` must be finite and > 0"):
         vs.BoxClip(centre=(1.0, 2.0, 3.0), half_size=(1.0, -1.0, 1.0))
-    with pytest.raises(ValueError, match=r"`shape` must be 3 positive ints"):
-        vs.clip_mask((4, 4), SHAPES["sphere"])
+    for shape in ((4, 4), (True, True, True)):
+        with pytest.raises(ValueError, match=r"`shape` must be 3 positive ints"):
+            vs.clip_mask(shape, SHAPES["sphere"])
     with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):
         vs.clip_opacity(jnp.ones((4, 4, 4)), "sphere")
     holed = jnp.ones((4, 4, 4)).at[0, 0, 0].set(jnp.nan)

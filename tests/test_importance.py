@@ -275,6 +275,17 @@ def test_sample_importance_errors():
         sample_importance(Importance(), normal=jnp.ones((4, 2)))
     with pytest.raises(ValueError, match="broadcast"):
         sample_importance(Importance(), intensity=jnp.ones(4), extinction=jnp.ones(5))
+    # NaN or inf weights: refused by name when built, and at run time when traced
+    for field, value in (("intensity", jnp.nan), ("darkening", jnp.inf),
+                         ("silhouette_end", jnp.inf), ("background", jnp.inf)):
+        with pytest.raises(ValueError, match=f"Importance: `{field}` must be finite"):
+            Importance(**{field: value})
+    assert float(Importance(background=-jnp.inf).background) == -np.inf  # no background
+    weighted = jax.jit(lambda w: sample_importance(Importance(intensity=w),
+                                                   intensity=jnp.ones(2))[0])
+    np.testing.assert_allclose(weighted(2.0), [2.0, 2.0])
+    with pytest.raises(Exception, match="sample_importance: `intensity` must be finite"):
+        jax.block_until_ready(weighted(jnp.nan))
 
 
 def test_float32_in_float32_out():

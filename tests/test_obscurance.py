@@ -278,6 +278,8 @@ def test_threshold_values_and_binary_limit():
     assert np.isfinite(float(g))
     check_grad_fd(lambda lo: jnp.sum(threshold(o, lo, 0.85) ** 2), jnp.asarray(0.15))
     assert threshold(o.astype(jnp.float32), 0.2, 0.8).dtype == jnp.float32
+    with pytest.raises(TypeError, match="threshold: `low`"):  # not parsed from a string
+        threshold(o, "0.2", 0.8)
 
 
 def test_obscurance_shading_blinn_phong():
@@ -388,6 +390,13 @@ def test_errors():
         obscurance(vol, directions=np.zeros((0, 3)), d_max=2.0)
     with pytest.raises(ValueError, match="zero vector"):
         obscurance(vol, directions=np.zeros((2, 3)), d_max=2.0)
+    # a direction in huge or tiny numbers is that direction (its norm would overflow to
+    # inf, a zero direction marched nowhere, or underflow to 0, refused as zero)
+    wall = jnp.zeros((4, 4, 4)).at[3].set(1.0)
+    for scale in (1e200, 1e-200):
+        np.testing.assert_array_equal(
+            occluder_distances(wall, directions=np.array([[scale, 0.0, 0.0]]))[0, :, 0, 0],
+            [3.0, 2.0, 1.0, np.inf])
     with pytest.raises(ValueError, match="colors"):
         obscurance(vol, directions=DIRS12, d_max=2.0, colors=jnp.zeros((4, 4, 4)))
     with pytest.raises(TypeError, match="concrete"):

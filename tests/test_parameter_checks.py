@@ -231,6 +231,13 @@ def test_obscurance_shading_input_errors():
     for n in (0.0, -1.0):
         with pytest.raises(ValueError, match="`shininess` must be > 0"):
             vs.obscurance_shading(normal, jnp.ones(3), jnp.ones(3), obs, shininess=n)
+    # traced: refused even where every N.H is a known 0 (the specular term folds away)
+    side, light = jnp.array([[0.0, 1.0, 0.0]]), jnp.array([1.0, 0.0, 0.0])
+    shade = jax.jit(lambda s: vs.obscurance_shading(side, light, light, jnp.ones(1), k_s=1.0,
+                                                    shininess=s))
+    for n in (-1.0, jnp.nan):
+        with pytest.raises(Exception, match="`shininess` (must be > 0|contains NaN or inf)"):
+            jax.block_until_ready(shade(n))
     # per-sample light directions that broadcast are fine
     out = vs.obscurance_shading(normal, jnp.ones((5, 3)), jnp.ones((1, 3)), obs)
     assert out.shape == (5,)

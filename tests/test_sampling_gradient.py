@@ -64,6 +64,8 @@ def test_trilinear_errors():
         trilinear(jnp.zeros((2, 2, 2)), jnp.zeros(2))
     with pytest.raises(ValueError, match="D, H, W"):
         trilinear(jnp.zeros((2, 2)), jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"not empty, got shape \(0, 3, 3\)"):
+        trilinear(jnp.zeros((0, 3, 3)), jnp.zeros(3))
 
 
 @pytest.mark.parametrize("size", [3, 5])
@@ -126,6 +128,9 @@ def test_regression_gradient_dtype_jit_vmap_grad_and_errors():
         regression_kernel(3, weighting="gauss")
     with pytest.raises(ValueError, match="spacing"):
         regression_gradient(vol, spacing=(1.0, -1.0, 1.0))
+    for not_numbers in ("2", True, ("1", "1", "1")):  # a string would parse, a bool pass
+        with pytest.raises(TypeError, match="`spacing` must be a number or 3 numbers"):
+            regression_gradient(vol, spacing=not_numbers)
 
 
 @pytest.mark.parametrize("size", [3, 5])

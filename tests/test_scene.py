@@ -369,6 +369,8 @@ def test_non_finite_parameters_are_refused_by_name(jit):
         vs.Camera.orbit(azimuth=float("nan"))
     nan_eye = eqx.tree_at(lambda c: c.eye, cam, jnp.full(3, jnp.nan))  # as a fit could set it
     phong_scene = vs.Scene(volume=vol, transfer=tf, shading="phong")
+    importance_scene = vs.Scene(volume=vol, transfer=tf, composition="importance",
+                                importance=Importance(intensity=1.0))
     cases = [
         # a NaN that skipped construction (a fit, eqx.tree_at): refused at render
         (eqx.tree_at(lambda s: s.phong.diffuse, phong_scene, jnp.asarray(jnp.nan)),
@@ -377,10 +379,10 @@ def test_non_finite_parameters_are_refused_by_name(jit):
          "scene.background"),
         (vs.Scene(volume=vol, transfer=tf), nan_eye, "camera.eye"),
         # -inf is allowed only where Importance declares it (the background), never +inf
-        (vs.Scene(volume=vol, transfer=tf, composition="importance",
-                  importance=Importance(background=jnp.inf)), cam, "scene.importance.background"),
-        (vs.Scene(volume=vol, transfer=tf, composition="importance",
-                  importance=Importance(intensity=-jnp.inf)), cam, "scene.importance.intensity"),
+        (eqx.tree_at(lambda s: s.importance.background, importance_scene,
+                     jnp.asarray(jnp.inf)), cam, "scene.importance.background"),
+        (eqx.tree_at(lambda s: s.importance.intensity, importance_scene,
+                     jnp.asarray(-jnp.inf)), cam, "scene.importance.intensity"),
     ]
     cases.append((vs.Scene(volume=vol, transfer=tf),  # one of several views
                   [cam, nan_eye], "camera[1].eye"))

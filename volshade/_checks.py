@@ -182,6 +182,9 @@ def spacing(value: Any, where: str) -> tuple[float, float, float]:
         raise TypeError(f"{where}: `spacing` is static (it sets kernels and sample "
                         f"positions) and cannot be traced; close over it instead of passing "
                         f"it as a `jit` argument.")
+    if np.asarray(value).dtype.kind not in "iuf":  # a string would parse, a bool pass as 1
+        raise TypeError(f"{where}: `spacing` must be a number or 3 numbers (d, h, w) in mm, "
+                        f"got {value!r}.")
     vals = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 \
         else np.asarray(value, dtype=float)
     if vals.shape != (3,):

@@ -240,7 +240,8 @@ def _within_reach(distances: Array, radius, clip: Clip) -> Array:
 
 def _shape_of(shape, where: str) -> tuple[int, int, int]:
     shape = tuple(shape)
-    if len(shape) != 3 or not all(isinstance(n, int | np.integer) and n >= 1 for n in shape):
+    if len(shape) != 3 or not all(isinstance(n, int | np.integer) and not isinstance(n, bool)
+                                  and n >= 1 for n in shape):
         raise ValueError(f"{where}: `shape` must be 3 positive ints (D, H, W), got {shape}.")
     return tuple(int(n) for n in shape)
 

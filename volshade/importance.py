@@ -125,8 +125,22 @@ class Importance(eqx.Module):
                 raise ValueError(f"volshade.Importance: `{name}` must be a scalar, got shape "
                                  f"{jnp.shape(value)}; for per-ray global weights pass "
                                  f"`global_weight=` to `sample_importance`.")
-        # traced values (a fit, jit) are checked by the renderer, with checked()
-        _checks.refuse(self, self._problems(), "volshade.Importance", traced=False)
+        # traced values (a fit, jit) are checked by the renderer (with checked() and its
+        # named finiteness check) and by sample_importance
+        _checks.refuse(self, [*self._non_finite(), *self._problems()], "volshade.Importance",
+                       traced=False)
+
+    def _non_finite(self) -> list[tuple[Array, str]]:
+        """NaN or inf weights (-inf allowed where :attr:`may_be_minus_inf` says)."""
+        out = []
+        for name, v in _leaves(self).items():
+            v = jnp.asarray(v)
+            if name in self.may_be_minus_inf:
+                out.append((jnp.isnan(v) | (v == jnp.inf),
+                            f"`{name}` must be finite, or -inf for none."))
+            else:
+                out.append((~jnp.isfinite(v), f"`{name}` must be finite."))
+        return out
 
     def _problems(self) -> list[tuple[Array, str]]:
         """Shape parameters outside their domain: exponents must be positive (0^p is 0
@@ -356,8 +370,8 @@ def sample_importance(
     scalars = {"intensity": intensity, "extinction": extinction,
                "gradient_magnitude": gradient_magnitude, "optical_depth": optical_depth}
     vectors = {"normal": normal, "view": view, "light": light}
-    return _sample_importance(params.checked(), scalars, vectors, global_weight,
-                              check_finite=True)
+    params = _checks.refuse(params.checked(), params._non_finite(), "volshade.sample_importance")
+    return _sample_importance(params, scalars, vectors, global_weight, check_finite=True)
 
 
 def _sample_importance(params, scalars, vectors, global_weight, *, check_finite: bool):

@@ -166,11 +166,14 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
         )
     if not np.all(np.isfinite(dirs)):
         raise ValueError(f"{where}: `{name}` contains NaN or inf.")
-    norms = np.linalg.norm(dirs, axis=1)
-    if np.any(norms == 0):
+    # scaled by the largest component first: the norm of a direction given in huge or
+    # tiny numbers would overflow (a zero direction, marched nowhere) or underflow
+    scale = np.max(np.abs(dirs), axis=1, keepdims=True)
+    if np.any(scale == 0):
         raise ValueError(f"{where}: `{name}` contains a zero vector; every direction must "
                          f"have a non-zero length.")
-    return dirs / norms[:, None]
+    dirs = dirs / scale
+    return dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
 
 
 def _other_axes(axis: int) -> tuple[int, int]:
@@ -681,7 +684,8 @@ def threshold(
     dtype = obscurance.dtype
     if isinstance(low, int | float) and isinstance(high, int | float) and low > high:
         raise ValueError(f"{where}: `low` must be <= `high`, got low={low}, high={high}.")
-    low, high = jnp.asarray(low, dtype), jnp.asarray(high, dtype)
+    low, high = (_checks.as_float_array(v, name, where).astype(dtype)
+                 for v, name in ((low, "low"), (high, "high")))
     if low.ndim or high.ndim:
         raise ValueError(f"{where}: `low` and `high` must be scalars, got shapes "
                          f"{low.shape} and {high.shape}.")
@@ -768,14 +772,17 @@ def obscurance_shading(
     if obscurance.shape not in (batch, (*batch, 3)):
         raise ValueError(f"{where}: `obscurance` must have shape {batch} (grey) or "
                          f"{(*batch, 3)} (RGB) to match `normal`, got {obscurance.shape}.")
-    k_d, k_s, shininess = (_checks.finite(_checks.scalar(v, name, where).astype(dtype), name,
-                                          where)
-                           for v, name in ((k_d, "k_d"), (k_s, "k_s"),
-                                           (shininess, "shininess")))
-    shininess = _checks.refuse(shininess, [(~(shininess > 0), "`shininess` must be > 0.")],
-                               where)
+    coefficients = {name: _checks.scalar(v, name, where).astype(dtype)
+                    for v, name in ((k_d, "k_d"), (k_s, "k_s"), (shininess, "shininess"))}
+    problems = [(~jnp.isfinite(v), f"`{name}` contains NaN or inf.")
+                for name, v in coefficients.items()]
+    problems.append((~(coefficients["shininess"] > 0), "`shininess` must be > 0."))
     two_sided = _checks.flag(two_sided, "two_sided", where)
-    return _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess, two_sided)
+    # checked on the result: a check on a coefficient would be folded away with its term
+    # (the specular one, when every N.H is a known 0)
+    shaded = _obscurance_shading(normal, light, view, obscurance, *coefficients.values(),
+                                 two_sided)
+    return _checks.refuse(shaded, problems, where)
 
 
 def _broadcasts(shape: tuple, target: tuple) -> bool:

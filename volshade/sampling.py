@@ -43,7 +43,7 @@ def trilinear(
         of ``volume``.
 
     Raises:
-        ValueError: ``volume`` is not 3-D or 4-D, ``points`` does not end in 3,
+        ValueError: ``volume`` is not 3-D or 4-D or is empty, ``points`` does not end in 3,
             or ``mode`` is unknown.
 
     Example:
@@ -57,8 +57,8 @@ def trilinear(
     # coordinates in at least float32: half precision cannot even hold index 257
     work = jnp.promote_types(volume.dtype, jnp.float32)
     points = jnp.asarray(points, dtype=work)
-    if volume.ndim not in (3, 4):
-        raise ValueError(f"{where}: `volume` must be (D, H, W) or (D, H, W, C), "
+    if volume.ndim not in (3, 4) or 0 in volume.shape:
+        raise ValueError(f"{where}: `volume` must be (D, H, W) or (D, H, W, C), not empty, "
                          f"got shape {volume.shape}.")
     if points.ndim < 1 or points.shape[-1] != 3:
         raise ValueError(f"{where}: `points` must have shape (..., 3), got {points.shape}.")
