@@ -264,6 +264,20 @@ def test_no_nan_gradients_on_edge_volumes(shading):
             assert np.all(np.abs(leaf) < 1e3)
 
 
+@pytest.mark.parametrize("units", [1e20, 1e30])
+def test_a_volume_in_huge_units_keeps_its_normals(units):
+    # float32: |gradient|^2 overflows above 1e19, which would leave every sample without
+    # a normal (Phong's ambient term only). (Tiny units fail earlier: jnp.interp takes
+    # control points closer than about 1e-14 in float32 as one point.)
+    vol = vs.data.phantom("shells", shape=12)
+    points = [(0.0, 1, 1, 1, 0.0), (0.5, 1, 0.8, 0.6, 0.4), (1.0, 1, 1, 1, 0.9)]
+    cam = Camera.orbit(azimuth=30.0, elevation=20.0, image_shape=(8, 8))
+    images = [march(vol * scale, TransferFunction.from_points(
+        [(x * scale, *rest) for x, *rest in points], dtype=jnp.float32), cam, shading="phong")
+        for scale in (1.0, units)]
+    np.testing.assert_allclose(images[1], images[0], atol=1e-5)
+
+
 def test_constant_volumes_have_no_normal():
     # whatever the constant value, an opaque constant volume has no gradient, so Phong
     # gives the ambient term only (not random full-strength normals)

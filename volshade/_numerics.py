@@ -99,16 +99,13 @@ def safe_norm(x: ArrayLike, axis: int = -1, keepdims: bool = False) -> Array:
 
 
 def safe_normalize(x: ArrayLike, axis: int = -1) -> Array:
-    """``x / |x|`` along ``axis``, for vectors of any magnitude; the zero vector maps to
-    the zero vector (finite gradient).
+    """``x / |x|`` along ``axis``; the zero vector maps to the zero vector (finite gradient).
 
-    The vector is first divided by its largest component: ``|x|^2`` underflows or
-    overflows for ``|x|`` beyond about ``1e-19`` and ``1e19`` in float32 (the gradient of
-    a volume in small or large units), which would turn a normal into the zero vector.
-    The result does not depend on that scale, so neither does its gradient."""
+    A vector whose ``|x|^2`` underflows (``|x|`` below about ``1e-19`` in float32,
+    ``1e-154`` in float64) is taken as the zero vector too, deliberately: its direction's
+    derivative, ``1/|x|``, would overflow. Callers that normalise vectors of arbitrary
+    units (the renderer's gradient volume) scale them first."""
     x = jnp.asarray(x)
-    scale = jnp.max(jnp.abs(x), axis=axis, keepdims=True)
-    x = quotient(x, jnp.where(scale > 0, scale, jnp.ones_like(scale)))
     return safe_div(x, safe_norm(x, axis=axis, keepdims=True))
 
 

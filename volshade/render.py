@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import correct_opacity, log1m, tiny
+from ._numerics import correct_opacity, log1m, quotient, tiny
 from ._types import Array, Float
 from .camera import Camera, box_half_extent, intersect_box
 from .composition import COMPOSITORS, Compositor, Sample
@@ -183,6 +183,12 @@ def medium(
     measured = composition == "importance"
     gradient = regression_gradient(volume, spacing=spacing, size=3) \
         if shader.needs_gradient or measured else None
+    if gradient is not None:
+        # normals need only its direction and the importance its scaled magnitude: over
+        # its largest component, a volume in tiny or huge units keeps its normals
+        # (|g|^2 would underflow or overflow, and safe_normalize give no normal)
+        peak = jnp.max(jnp.abs(gradient))
+        gradient = quotient(gradient, jnp.where(peak > 0, peak, jnp.ones_like(peak)))
     phong = Phong() if phong is None else phong
     if shader.needs_gradient:  # the lit shaders, which read the Phong coefficients
         phong = phong.checked()

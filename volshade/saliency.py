@@ -493,7 +493,7 @@ class SaliencyModulation(eqx.Module):
         d_max: obscurance distance in voxels (default 32).
         rho: the obscurance's rho (:data:`volshade.obscurance.RHO_FUNCTIONS` name,
             default ``"sqrt"``).
-        level: icosphere level of the obscurance directions (default 1: 42).
+        level: icosphere level of the obscurance directions, 0 to 4 (default 1: 42).
         size: regression neighbourhood of the saliency, 5 (default) or 3.
         multiply: multiply the opacity by the saliency (default True).
         boost_top: ``None`` (default) or the top fraction of the saliency range whose
@@ -501,8 +501,8 @@ class SaliencyModulation(eqx.Module):
 
     Raises:
         ValueError / TypeError: a non-finite ``threshold``, a bad ``d_max``, an
-            unknown ``rho``, a ``level`` other than 0, 1 or 2, a ``size`` other than 3
-            or 5, a ``multiply`` that is not a bool, a ``boost_top`` outside (0, 1].
+            unknown ``rho``, a ``level`` outside 0-4, a ``size`` other than 3 or 5, a
+            ``multiply`` that is not a bool, a ``boost_top`` outside (0, 1].
     """
 
     threshold: Float[Array, ""] = eqx.field(
