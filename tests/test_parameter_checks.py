@@ -93,6 +93,14 @@ def test_nested_lists_become_arrays():
     # the options lao() refuses, refused when the module is built, not at its first call
     (lambda: vs.LocalAmbientOcclusion(3.0, opacity_correction="no"), TypeError,
      "`opacity_correction` must be True or False"),
+    # a bool is not a number here (it would pass as 0 or 1), nor an int a random key
+    (lambda: vs.affected_mask((8, 8, 8), vs.SphereClip(centre=(4.0, 4.0, 4.0), radius=1.0),
+                              radius=True), TypeError, "affected_mask: `radius` must be a number"),
+    (lambda: vs.obscurance_shading(jnp.ones((1, 3)), jnp.ones(3), jnp.ones(3), jnp.ones(1),
+                                   shininess=jnp.array(True)), TypeError,
+     "obscurance_shading: `shininess` must be a number, got the bool"),
+    (lambda: vs.directions.random_polar(3, key=0), TypeError,
+     "random_polar: `key` must be a jax.random key"),
     # a truthy string would silently switch these on
     (lambda: vs.viewpoint_saliency(DENSITY, DENSITY, icosphere_points(0), per_area="no"),
      TypeError, "viewpoint_saliency: `per_area` must be True or False"),

@@ -84,7 +84,10 @@ def flag(value: Any, name: str, where: str) -> bool:
 
 
 def scalar(x: Any, name: str, where: str) -> Array:
-    """A floating scalar argument (trace-time shape check)."""
+    """A floating scalar argument (trace-time shape check); a bool is refused, not taken
+    as 0 or 1."""
+    if isinstance(x, bool | np.bool_) or getattr(x, "dtype", None) == np.bool_:
+        raise TypeError(f"{where}: `{name}` must be a number, got the bool {x!r}.")
     arr = as_float_array(x, name, where)
     if arr.ndim != 0:
         raise ValueError(f"{where}: `{name}` must be a scalar, got shape {tuple(arr.shape)}; "

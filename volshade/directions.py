@@ -42,8 +42,13 @@ def random_polar(n: int, *, key: jax.Array) -> Float[Array, "n 3"]:
         n: number of directions.
         key: a ``jax.random`` key; the same key gives the same set.
     """
-    n = _checks.positive_int(n, "n", "volshade.directions.random_polar")
-    k1, k2 = jax.random.split(key)
+    where = "volshade.directions.random_polar"
+    n = _checks.positive_int(n, "n", where)
+    try:
+        k1, k2 = jax.random.split(key)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{where}: `key` must be a jax.random key, e.g. jax.random.key(0), "
+                        f"got {key!r}.") from err
     dtype = jnp.result_type(float)
     cos_t = jax.random.uniform(k1, (n,), dtype, -1.0, 1.0)
     phi = jax.random.uniform(k2, (n,), dtype, 0.0, 2 * jnp.pi)
