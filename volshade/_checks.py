@@ -75,6 +75,13 @@ def as_working_float(x: Any, name: str, where: str) -> Array:
     return at_least_float32(as_float_array(x, name, where))
 
 
+def non_finite(x: Any, *, minus_inf: bool = False) -> Array:
+    """Where ``x`` is NaN or inf; with ``minus_inf``, -inf is a value, not an error (an
+    importance of -inf means "no background")."""
+    x = jnp.asarray(x)
+    return ~(jnp.isfinite(x) | ((x == -jnp.inf) if minus_inf else False))
+
+
 def flag(value: Any, name: str, where: str) -> bool:
     """A static on/off option: ``True`` or ``False`` only (a string such as ``"no"`` is
     truthy and would silently switch the option on)."""

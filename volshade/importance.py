@@ -132,15 +132,10 @@ class Importance(eqx.Module):
 
     def _non_finite(self) -> list[tuple[Array, str]]:
         """NaN or inf weights (-inf allowed where :attr:`may_be_minus_inf` says)."""
-        out = []
-        for name, v in _leaves(self).items():
-            v = jnp.asarray(v)
-            if name in self.may_be_minus_inf:
-                out.append((jnp.isnan(v) | (v == jnp.inf),
-                            f"`{name}` must be finite, or -inf for none."))
-            else:
-                out.append((~jnp.isfinite(v), f"`{name}` must be finite."))
-        return out
+        return [(_checks.non_finite(v, minus_inf=name in self.may_be_minus_inf),
+                 f"`{name}` must be finite"
+                 f"{', or -inf for none' if name in self.may_be_minus_inf else ''}.")
+                for name, v in _leaves(self).items()]
 
     def _problems(self) -> list[tuple[Array, str]]:
         """Shape parameters outside their domain: exponents must be positive (0^p is 0

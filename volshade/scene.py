@@ -270,8 +270,8 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
                 return _checks.refuse(leaf, [(bad, message)], "volshade.render")
             if not eqx.is_inexact_array(leaf) or leaf is scene.volume:
                 return leaf
-            ok = jnp.isfinite(leaf) | ((leaf == -jnp.inf) if minus_inf else False)
-            return _checks.refuse(leaf, [(~jnp.all(ok), message)], "volshade.render")
+            return _checks.refuse(leaf, [(jnp.any(_checks.non_finite(leaf, minus_inf=minus_inf)),
+                                          message)], "volshade.render")
 
         return jax.tree_util.tree_map_with_path(check, tree)
 
