@@ -46,12 +46,12 @@ def run(quick: bool) -> dict:
 
         # the volumes are arguments, not constants XLA would fold while compiling
         def contextual(centre, alpha, unclipped, r=clip_radius):
-            clip = vs.SphereClip(centre=centre, radius=r)
+            clip = vs.SphereClip(center=centre, radius=r)
             return vs.contextual_ao(alpha, clip=clip, unclipped=unclipped, brick_size=brick,
                                     **kw)
 
         def full(centre, alpha, unclipped, r=clip_radius):
-            return vs.lao(vs.clip_opacity(alpha, vs.SphereClip(centre=centre, radius=r)), **kw)
+            return vs.lao(vs.clip_opacity(alpha, vs.SphereClip(center=centre, radius=r)), **kw)
 
         fast, slow = jax.jit(contextual), jax.jit(full)
         # a path from a corner of the volume to its centre: the clip cuts in deeper
@@ -66,7 +66,7 @@ def run(quick: bool) -> dict:
             t_slow.append(b["median_s"])
             diffs.append(float(jnp.max(jnp.abs(fast(*args) - slow(*args)))))
             fractions.append(affected_fraction(alpha.shape, vs.SphereClip(
-                centre=centre, radius=clip_radius), radius=radius, brick_size=brick))
+                center=centre, radius=clip_radius), radius=radius, brick_size=brick))
         for centre, tf_, ts, d, f in zip(path, t_fast, t_slow, diffs, fractions, strict=True):
             where = "(" + ", ".join(f"{c:.0f}" for c in centre) + ")"
             rows.append({"case": f"{name}, clip at {where}: full recompute", "median_s": ts})

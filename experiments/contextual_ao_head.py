@@ -82,7 +82,7 @@ print(f"Colin27 {head.shape} at {voxel:g} mm; LAO of the whole head {t_unclipped
 
 
 def clip_at(centre):
-    return vs.SphereClip(centre=centre, radius=clip_radius)
+    return vs.SphereClip(center=centre, radius=clip_radius)
 
 
 # the volumes are arguments of the compiled functions, not constants to fold

@@ -16,10 +16,10 @@ DIRS = vs.directions.icosphere(0)
 KW = dict(directions=DIRS, radius=3.5, offset=0.5, samples=6)
 ROTATION = np.linalg.qr(RNG.normal(size=(3, 3)))[0]
 CLIPS = {
-    "sphere": vs.SphereClip(centre=(5.0, 6.0, 7.0), radius=3.5),
-    "box": vs.BoxClip(centre=(18.0, 9.0, 14.0), half_size=(3.0, 4.5, 2.0), rotation=ROTATION),
-    "torus": vs.TorusClip(centre=(12.0, 11.0, 13.0), major=4.0, minor=1.2, rotation=ROTATION),
-    "half-space": vs.HalfSpaceClip(centre=(20.0, 0.0, 0.0)),
+    "sphere": vs.SphereClip(center=(5.0, 6.0, 7.0), radius=3.5),
+    "box": vs.BoxClip(center=(18.0, 9.0, 14.0), half_size=(3.0, 4.5, 2.0), rotation=ROTATION),
+    "torus": vs.TorusClip(center=(12.0, 11.0, 13.0), major=4.0, minor=1.2, rotation=ROTATION),
+    "half-space": vs.HalfSpaceClip(center=(20.0, 0.0, 0.0)),
 }
 
 
@@ -57,7 +57,7 @@ def test_the_reach_is_needed_and_enough_voxel_by_voxel():
     # changes all lie in the affected mask, some of them farther than R from the clip (so
     # a reach of R alone would miss them), and marching only the mask gives the full AO
     alpha = ALPHA[:14, :14, :14]
-    clip = vs.HalfSpaceClip(centre=(9.0, 0.0, 0.0))
+    clip = vs.HalfSpaceClip(center=(9.0, 0.0, 0.0))
     # (one ray along d, which the half-space's removed voxels lie across)
     dirs = jnp.concatenate([jnp.asarray([[1.0, 0.0, 0.0]]),
                             vs.directions.random_polar(8, key=jax.random.key(4))])
@@ -88,7 +88,7 @@ def test_traced_clips_are_checked_where_used():
     unclipped = vs.lao(ALPHA, **KW)
 
     def run(rotation, centre):
-        clip = vs.BoxClip(centre=centre, half_size=2.0, rotation=rotation)
+        clip = vs.BoxClip(center=centre, half_size=2.0, rotation=rotation)
         return vs.contextual_ao(ALPHA, clip=clip, unclipped=unclipped, **KW)
 
     fine = eqx.filter_jit(run)(jnp.eye(3), jnp.asarray([5.0, 5.0, 5.0]))
@@ -99,7 +99,7 @@ def test_traced_clips_are_checked_where_used():
 
 
 def test_large_clip_marches_the_whole_volume_and_still_agrees():
-    clip = vs.SphereClip(centre=(12.0, 11.0, 13.0), radius=9.0)
+    clip = vs.SphereClip(center=(12.0, 11.0, 13.0), radius=9.0)
     assert affected_fraction(ALPHA.shape, clip, radius=3.5) > 0.5  # the dense branch
     got = vs.contextual_ao(ALPHA, clip=clip, unclipped=vs.lao(ALPHA, **KW), **KW)
     np.testing.assert_allclose(np.asarray(got), np.asarray(_full(ALPHA, clip, **KW)),
@@ -109,17 +109,17 @@ def test_large_clip_marches_the_whole_volume_and_still_agrees():
 def test_hard_cases():
     unclipped = vs.lao(ALPHA, **KW)
     # a clip outside the volume removes nothing: the unclipped AO, exactly
-    away = vs.SphereClip(centre=(-20.0, -20.0, -20.0), radius=2.0)
+    away = vs.SphereClip(center=(-20.0, -20.0, -20.0), radius=2.0)
     np.testing.assert_array_equal(
         np.asarray(vs.contextual_ao(ALPHA, clip=away, unclipped=unclipped, **KW)),
         np.asarray(unclipped))
     # a clip that removes everything: nothing occludes
-    everything = vs.HalfSpaceClip(centre=(-1.0, 0.0, 0.0))
+    everything = vs.HalfSpaceClip(center=(-1.0, 0.0, 0.0))
     out = vs.contextual_ao(ALPHA, clip=everything, unclipped=unclipped, **KW)
     assert np.all(np.asarray(out) == 1.0)
     # one voxel, clipped or not; M = 1
     one = jnp.full((1, 1, 1), 0.7)
-    kept = vs.SphereClip(centre=(5.0, 5.0, 5.0), radius=1.0)
+    kept = vs.SphereClip(center=(5.0, 5.0, 5.0), radius=1.0)
     assert float(vs.contextual_ao(one, clip=kept, unclipped=vs.lao(one, **KW), **KW)[0, 0, 0]) \
         == float(vs.lao(one, **KW)[0, 0, 0])
     m1 = dict(KW, samples=1)
@@ -134,14 +134,14 @@ def test_moving_clip_under_jit_and_vmap_never_recompiles():
     @jax.jit
     def frame(centre):
         traces.append(1)
-        return vs.contextual_ao(ALPHA, clip=vs.SphereClip(centre=centre, radius=3.0),
+        return vs.contextual_ao(ALPHA, clip=vs.SphereClip(center=centre, radius=3.0),
                                 unclipped=unclipped, **KW)
 
     path = jnp.asarray([[4.0, 5.0, 6.0], [12.0, 11.0, 6.0], [20.0, 17.0, 20.0]])
     frames = [frame(c) for c in path]
     assert len(traces) == 1
     for c, got in zip(path, frames, strict=True):
-        full = _full(ALPHA, vs.SphereClip(centre=c, radius=3.0), **KW)
+        full = _full(ALPHA, vs.SphereClip(center=c, radius=3.0), **KW)
         np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=0, atol=1e-12)
     batched = jax.vmap(frame)(path)
     for got, single in zip(batched, frames, strict=True):
@@ -152,7 +152,7 @@ def test_moving_clip_under_jit_and_vmap_never_recompiles():
 def test_gradients_equal_the_full_recompute_and_finite_differences():
     # unclipped computed inside the differentiated function: its gradient is that of
     # the voxels the clip cannot change, under the clip too
-    clip = vs.SphereClip(centre=(2.0, 2.0, 2.0), radius=3.0)
+    clip = vs.SphereClip(center=(2.0, 2.0, 2.0), radius=3.0)
     alpha = ALPHA[:16, :16, :16]
     w = jnp.asarray(RNG.normal(size=alpha.shape))
     # random directions: no sample sits on a voxel boundary (a kink of the trilinear
@@ -202,7 +202,7 @@ def test_scene_clips_the_render_and_the_lao_ambient():
     vol = vs.data.phantom("shells", shape=16).astype(jnp.float64)
     tf = vs.transfer.preset("shells")
     params = vs.LocalAmbientOcclusion(3.0, directions=12, samples=5)
-    clip = vs.SphereClip(centre=(8.0, 8.0, 16.0), radius=7.0)
+    clip = vs.SphereClip(center=(8.0, 8.0, 16.0), radius=7.0)
     scene = vs.Scene(volume=vol, transfer=tf, ambient="lao", lao=params, clip=clip,
                      shading="phong")
     np.testing.assert_allclose(np.asarray(_lao_ambient(scene)),
@@ -213,7 +213,7 @@ def test_scene_clips_the_render_and_the_lao_ambient():
     clipped = np.asarray(render(vs.Scene(volume=vol, transfer=tf, clip=clip), camera))
     whole = np.asarray(render(vs.Scene(volume=vol, transfer=tf), camera))
     assert clipped[..., 3].sum() < 0.95 * whole[..., 3].sum()
-    gone = vs.Scene(volume=vol, transfer=tf, clip=vs.HalfSpaceClip(centre=(-1.0, 0.0, 0.0)))
+    gone = vs.Scene(volume=vol, transfer=tf, clip=vs.HalfSpaceClip(center=(-1.0, 0.0, 0.0)))
     assert np.all(np.asarray(render(gone, camera))[..., 3] == 0)
     with pytest.raises(ValueError, match="does not take `clip` into account"):
         vs.Scene(volume=vol, transfer=tf, ambient="obscurance", clip=clip)

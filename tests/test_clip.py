@@ -12,17 +12,17 @@ import volshade as vs
 RNG = np.random.default_rng(11)
 ROTATION = np.linalg.qr(RNG.normal(size=(3, 3)))[0]
 SHAPES = {
-    "sphere": vs.SphereClip(centre=(7.0, 8.5, 6.2), radius=4.3),
-    "box": vs.BoxClip(centre=(8.0, 7.0, 9.0), half_size=(2.5, 4.0, 1.5), rotation=ROTATION),
-    "torus": vs.TorusClip(centre=(8.0, 8.0, 8.0), major=4.5, minor=1.5, rotation=ROTATION),
-    "half-space": vs.HalfSpaceClip(centre=(8.0, 8.0, 8.0), rotation=ROTATION),
+    "sphere": vs.SphereClip(center=(7.0, 8.5, 6.2), radius=4.3),
+    "box": vs.BoxClip(center=(8.0, 7.0, 9.0), half_size=(2.5, 4.0, 1.5), rotation=ROTATION),
+    "torus": vs.TorusClip(center=(8.0, 8.0, 8.0), major=4.5, minor=1.5, rotation=ROTATION),
+    "half-space": vs.HalfSpaceClip(center=(8.0, 8.0, 8.0), rotation=ROTATION),
 }
 
 
 def _solid(name, points):
     """Whether ``points`` (..., 3) lie inside the shape, by its definition."""
     clip = SHAPES[name]
-    local = (points - np.asarray(clip.centre)) @ np.asarray(clip.rotation)
+    local = (points - np.asarray(clip.center)) @ np.asarray(clip.rotation)
     if name == "sphere":
         return np.linalg.norm(local, axis=-1) <= float(clip.radius)
     if name == "box":
@@ -65,13 +65,13 @@ def test_affected_voxels_hold_every_voxel_within_reach_of_a_clipped_one(name):
 
 
 def test_clip_opacity_and_mask_by_hand():
-    mask = vs.clip_mask((9, 9, 9), vs.SphereClip(centre=(4.0, 4.0, 4.0), radius=1.0))
+    mask = vs.clip_mask((9, 9, 9), vs.SphereClip(center=(4.0, 4.0, 4.0), radius=1.0))
     assert int(mask.sum()) == 7 and bool(mask[4, 4, 5]) and not bool(mask[4, 5, 5])
     alpha = jnp.full((9, 9, 9), 0.5, jnp.float32)
-    out = vs.clip_opacity(alpha, vs.HalfSpaceClip(centre=(6.0, 0.0, 0.0)))
+    out = vs.clip_opacity(alpha, vs.HalfSpaceClip(center=(6.0, 0.0, 0.0)))
     assert out.dtype == jnp.float32
     assert np.all(np.asarray(out[6:]) == 0) and np.all(np.asarray(out[:6]) == 0.5)
-    flipped = vs.HalfSpaceClip(centre=(6.0, 0.0, 0.0), rotation=-np.eye(3))
+    flipped = vs.HalfSpaceClip(center=(6.0, 0.0, 0.0), rotation=-np.eye(3))
     assert np.all(np.asarray(vs.clip_opacity(alpha, flipped)[:7]) == 0)
 
 
@@ -81,7 +81,7 @@ def test_moving_a_clip_does_not_recompile_and_vmaps():
     @jax.jit
     def removed(centre):
         traces.append(1)
-        return jnp.sum(vs.clip_mask((12, 12, 12), vs.SphereClip(centre=centre, radius=2.5)))
+        return jnp.sum(vs.clip_mask((12, 12, 12), vs.SphereClip(center=centre, radius=2.5)))
 
     counts = [int(removed(jnp.asarray(c))) for c in ([3.0, 3.0, 3.0], [6.0, 6.0, 6.0],
                                                       [0.0, 0.0, 0.0])]
@@ -92,24 +92,24 @@ def test_moving_a_clip_does_not_recompile_and_vmaps():
 
 def test_signed_distance_gradient_is_finite_at_the_centre():
     for clip in SHAPES.values():
-        g = jax.grad(lambda p, c=clip: c.signed_distance(p))(jnp.asarray(clip.centre))
+        g = jax.grad(lambda p, c=clip: c.signed_distance(p))(jnp.asarray(clip.center))
         assert np.all(np.isfinite(np.asarray(g)))
 
 
 def test_bad_clips_raise_clear_errors():
     with pytest.raises(ValueError, match="`radius` must be finite and > 0"):
-        vs.SphereClip(centre=(1.0, 2.0, 3.0), radius=0.0)
-    with pytest.raises(ValueError, match="`centre` must be 3 numbers"):
-        vs.SphereClip(centre=(1.0, 2.0), radius=1.0)
+        vs.SphereClip(center=(1.0, 2.0, 3.0), radius=0.0)
+    with pytest.raises(ValueError, match="`center` must be 3 numbers"):
+        vs.SphereClip(center=(1.0, 2.0), radius=1.0)
     for centre in ((np.nan, 0.0, 0.0), (0.0, np.inf, 0.0)):
-        with pytest.raises(ValueError, match="`centre` must be finite"):
-            vs.HalfSpaceClip(centre=centre)
+        with pytest.raises(ValueError, match="`center` must be finite"):
+            vs.HalfSpaceClip(center=centre)
     with pytest.raises(ValueError, match="orthonormal"):
-        vs.BoxClip(centre=(1.0, 2.0, 3.0), half_size=1.0, rotation=2 * np.eye(3))
+        vs.BoxClip(center=(1.0, 2.0, 3.0), half_size=1.0, rotation=2 * np.eye(3))
     with pytest.raises(ValueError, match=r"`rotation` must be a 3x3"):
-        vs.TorusClip(centre=(1.0, 2.0, 3.0), major=2.0, minor=1.0, rotation=np.eye(2))
+        vs.TorusClip(center=(1.0, 2.0, 3.0), major=2.0, minor=1.0, rotation=np.eye(2))
     with pytest.raises(ValueError, match="`half_size` must be finite and > 0"):
-        vs.BoxClip(centre=(1.0, 2.0, 3.0), half_size=(1.0, -1.0, 1.0))
+        vs.BoxClip(center=(1.0, 2.0, 3.0), half_size=(1.0, -1.0, 1.0))
     for shape in ((4, 4), (True, True, True)):
         with pytest.raises(ValueError, match=r"`shape` must be 3 positive ints"):
             vs.clip_mask(shape, SHAPES["sphere"])
@@ -125,8 +125,8 @@ def test_bad_clips_raise_clear_errors():
 def test_half_precision_clips_are_measured_in_float32():
     # bfloat16 cannot even count the voxels of a 300-voxel axis; the distances are
     # computed in float32 at least, so the masks are those of the float32 clip
-    exact = vs.SphereClip(centre=jnp.asarray([3.0, 150.0, 4.0], jnp.float32), radius=2.5)
-    half = vs.SphereClip(centre=jnp.asarray([3.0, 150.0, 4.0], jnp.bfloat16),
+    exact = vs.SphereClip(center=jnp.asarray([3.0, 150.0, 4.0], jnp.float32), radius=2.5)
+    half = vs.SphereClip(center=jnp.asarray([3.0, 150.0, 4.0], jnp.bfloat16),
                          radius=jnp.asarray(2.5, jnp.bfloat16))
     for fn in (lambda c: vs.clip_mask((8, 300, 8), c),
                lambda c: vs.affected_mask((8, 300, 8), c, radius=2.0)):

@@ -200,7 +200,7 @@ def test_a_non_finite_target_is_refused():
 
 @pytest.mark.parametrize("path, match", [
     ("lao.directions", "ray directions"),
-    ("clip.centre", "piecewise constant"),
+    ("clip.center", "piecewise constant"),
     ("clip.rotation", "piecewise constant"),
     ("clip.radius", "piecewise constant"),
     ("saliency.threshold", "step at the threshold"),
@@ -214,7 +214,7 @@ def test_leaves_without_a_gradient_are_refused(path, match):
     grey = vs.transfer.preset("grey")
     effects = {
         "lao": {"ambient": "lao"},
-        "clip": {"clip": vs.SphereClip(centre=(3.0, 3.0, 3.0), radius=2.0)},
+        "clip": {"clip": vs.SphereClip(center=(3.0, 3.0, 3.0), radius=2.0)},
         "saliency": {"modulation": "saliency"},
         "focus": {"composition": "importance", "focus": vs.Focus(kind="circular")},
         "feature_ao": {"ambient": "feature_ao", "feature_ao": vs.FeatureAmbientOcclusion(

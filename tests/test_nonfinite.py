@@ -41,7 +41,7 @@ CASES = {
     "focus_weights inside": (
         lambda x: focus_weights((4, 4), center=(1.0, 1.0), radius=1.0, inside=x[1]), "inside"),
     "affected_mask radius": (
-        lambda x: affected_mask((4, 4, 4), SphereClip(centre=(1.0, 1.0, 1.0), radius=1.0),
+        lambda x: affected_mask((4, 4, 4), SphereClip(center=(1.0, 1.0, 1.0), radius=1.0),
                                 radius=x[1]), "radius"),
     "modulate_opacity threshold": (
         lambda x: modulate_opacity(jnp.ones((2, 2, 2)), jnp.ones((2, 2, 2)), threshold=x[1]),

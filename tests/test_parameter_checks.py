@@ -94,7 +94,7 @@ def test_nested_lists_become_arrays():
     (lambda: vs.LocalAmbientOcclusion(3.0, opacity_correction="no"), TypeError,
      "`opacity_correction` must be True or False"),
     # a bool is not a number here (it would pass as 0 or 1), nor an int a random key
-    (lambda: vs.affected_mask((8, 8, 8), vs.SphereClip(centre=(4.0, 4.0, 4.0), radius=1.0),
+    (lambda: vs.affected_mask((8, 8, 8), vs.SphereClip(center=(4.0, 4.0, 4.0), radius=1.0),
                               radius=True), TypeError, "affected_mask: `radius` must be a number"),
     (lambda: vs.obscurance_shading(jnp.ones((1, 3)), jnp.ones(3), jnp.ones(3), jnp.ones(1),
                                    shininess=jnp.array(True)), TypeError,
@@ -136,7 +136,7 @@ def test_nested_lists_become_arrays():
     (lambda: vs.LocalAmbientOcclusion("3"), TypeError, "`radius` must be a real number"),
     (lambda: vs.IntervalFeature(0.2, "1"), TypeError, "IntervalFeature: `high`"),
     (lambda: vs.Camera.orbit(fov="30"), TypeError, "Camera.orbit: `fov`"),
-    (lambda: vs.SphereClip(centre=(1.0, 2.0, None), radius=2.0), TypeError, "`centre`"),
+    (lambda: vs.SphereClip(center=(1.0, 2.0, None), radius=2.0), TypeError, "`center`"),
     (lambda: vs.Camera.orbit(target=(0.0, 0.0)), ValueError,
      r"Camera.orbit: `target` must be a point \(d, h, w\), got shape \(2,\)"),
     (lambda: vs.Focus(radius=jnp.array([0.1, 0.2])).weights((8, 8)), ValueError,
@@ -145,9 +145,9 @@ def test_nested_lists_become_arrays():
      "Camera.orbit: `target` must be finite"),
     (lambda: vs.TransferFunction([0.0, 1.0], "white", [0.0, 1.0]), TypeError,
      "TransferFunction: `colors` must be a real number"),
-    (lambda: vs.BoxClip(centre=(6.0, 6.0, 6.0), half_size="2"), TypeError,
+    (lambda: vs.BoxClip(center=(6.0, 6.0, 6.0), half_size="2"), TypeError,
      "BoxClip: `half_size` must be a real number"),
-    (lambda: vs.BoxClip(centre=(6.0, 6.0, 6.0), half_size=(1.0, 2.0)), ValueError,
+    (lambda: vs.BoxClip(center=(6.0, 6.0, 6.0), half_size=(1.0, 2.0)), ValueError,
      r"`half_size` must be one number or three .* got shape \(2,\)"),
 ])
 def test_parameter_modules_refuse_bad_values_at_construction(build, exc, match):

@@ -91,7 +91,7 @@ def contextual_ao(
         >>> alpha = jnp.zeros((16, 16, 16)).at[4:12, 4:12, 4:12].set(0.3)
         >>> kw = dict(directions=12, radius=3.0, samples=6)
         >>> before = vs.lao(alpha, **kw)
-        >>> clip = vs.SphereClip(centre=(4.0, 4.0, 4.0), radius=3.0)
+        >>> clip = vs.SphereClip(center=(4.0, 4.0, 4.0), radius=3.0)
         >>> after = contextual_ao(alpha, clip=clip, unclipped=before, **kw)
         >>> bool(jnp.allclose(after, vs.lao(vs.clip_opacity(alpha, clip), **kw), atol=1e-6))
         True

@@ -1,7 +1,7 @@
 r"""Clip shapes: the voxels a clip removes, and the voxels whose LAO it can change.
 
 A clip is a solid placed in the volume (voxel index coordinates, ``(d, h, w)``
-order) by its ``centre`` and ``rotation`` (a rotation matrix whose columns are
+order) by its ``center`` and ``rotation`` (a rotation matrix whose columns are
 the shape's local axes); the voxels whose centres lie inside it are removed
 (opacity 0). This is the subtraction of the clipping mesh from the volume of
 Titov et al. (section 3.2). Every shape has an exact signed distance
@@ -54,21 +54,21 @@ def _orthonormal(rotation: Array) -> Array:
     return jnp.max(jnp.abs(rotation.T @ rotation - jnp.eye(3))) < 1e-5
 
 
-def _pose(centre, rotation, where: str) -> tuple[Array, Array]:
-    centre = _checks.float_leaf(centre, "centre", where)
+def _pose(center, rotation, where: str) -> tuple[Array, Array]:
+    center = _checks.float_leaf(center, "center", where)
     rotation = _checks.float_leaf(np.eye(3) if rotation is None else rotation, "rotation", where)
-    if centre.shape != (3,):
-        raise ValueError(f"{where}: `centre` must be 3 numbers (d, h, w) in voxels, got shape "
-                         f"{centre.shape}.")
+    if center.shape != (3,):
+        raise ValueError(f"{where}: `center` must be 3 numbers (d, h, w) in voxels, got shape "
+                         f"{center.shape}.")
     if rotation.shape != (3, 3):
         raise ValueError(f"{where}: `rotation` must be a 3x3 rotation matrix, got shape "
                          f"{rotation.shape}.")
-    _checks.refuse(centre, [(~jnp.all(jnp.isfinite(centre)), "`centre` must be finite "
+    _checks.refuse(center, [(~jnp.all(jnp.isfinite(center)), "`center` must be finite "
                              "(voxels).")], where, traced=False)
     _checks.refuse(rotation, [(~_orthonormal(rotation), "`rotation` must be orthonormal (a "
                                "rotation matrix): the signed distance is exact only then.")],
                    where, traced=False)
-    return centre, rotation
+    return center, rotation
 
 
 def _positive(value, name: str, where: str) -> Array:
@@ -89,35 +89,35 @@ def _lead(vector: Array, like: Array) -> Array:
 
 
 class Clip(eqx.Module):
-    """A clip shape: ``centre`` ``(3,)`` and ``rotation`` ``(3, 3)`` (columns: the
+    """A clip shape: ``center`` ``(3,)`` and ``rotation`` ``(3, 3)`` (columns: the
     local axes) in voxel index coordinates. Subclasses give the signed distance in
     the shape's local frame and name their size leaves in ``sizes``.
 
-    Every shape is built with keyword arguments: ``centre`` (3 numbers, voxels),
+    Every shape is built with keyword arguments: ``center`` (3 numbers, voxels),
     ``rotation`` (optional 3x3 orthonormal matrix, default the identity) and its
     sizes (voxels, > 0).
 
     Raises:
-        ValueError: a ``centre`` that is not 3 finite numbers, a ``rotation`` that is
+        ValueError: a ``center`` that is not 3 finite numbers, a ``rotation`` that is
             not a 3x3 orthonormal matrix, a size that is not finite and > 0 (when
             known; traced values where the masks are computed).
         TypeError: a value that is not a real number.
     """
 
-    centre: Float[Array, "3"]
+    center: Float[Array, "3"]
     rotation: Float[Array, "3 3"]
     sizes = ()  # the names of the size leaves (voxels, > 0)
 
     def _without_gradient(self) -> dict[str, str]:
         """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
         why = "a clip's masks are piecewise constant in its pose and sizes"
-        return dict.fromkeys(("centre", "rotation", *self.sizes), why)
+        return dict.fromkeys(("center", "rotation", *self.sizes), why)
 
     def signed_distance(self, points: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
         r"""Exact Euclidean signed distance $\phi$ (voxels) of ``points`` ``(..., 3)``
         to the shape's surface, negative inside."""
         points = jnp.asarray(points)
-        local = (points - _lead(self.centre, points)) @ self.rotation
+        local = (points - _lead(self.center, points)) @ self.rotation
         return self._local_distance(local[..., 0], local[..., 1], local[..., 2])
 
     @abc.abstractmethod
@@ -127,10 +127,10 @@ class Clip(eqx.Module):
 
 
 class SphereClip(Clip):
-    """A ball of ``radius`` voxels around ``centre``.
+    """A ball of ``radius`` voxels around ``center``.
 
     Example:
-        >>> clip = SphereClip(centre=(8.0, 8.0, 8.0), radius=3.0)
+        >>> clip = SphereClip(center=(8.0, 8.0, 8.0), radius=3.0)
         >>> float(clip.signed_distance(jnp.asarray([8.0, 8.0, 13.0])))
         2.0
     """
@@ -138,10 +138,10 @@ class SphereClip(Clip):
     radius: Float[Array, ""]
     sizes = ("radius",)
 
-    def __init__(self, *, centre: ArrayLike, radius: ArrayLike,
+    def __init__(self, *, center: ArrayLike, radius: ArrayLike,
                  rotation: ArrayLike | None = None):
         where = "volshade.SphereClip"
-        self.centre, self.rotation = _pose(centre, rotation, where)
+        self.center, self.rotation = _pose(center, rotation, where)
         self.radius = _positive(radius, "radius", where)
 
     def _local_distance(self, u, v, w):
@@ -154,10 +154,10 @@ class BoxClip(Clip):
     half_size: Float[Array, "3"]
     sizes = ("half_size",)
 
-    def __init__(self, *, centre: ArrayLike, half_size: ArrayLike,
+    def __init__(self, *, center: ArrayLike, half_size: ArrayLike,
                  rotation: ArrayLike | None = None):
         where = "volshade.BoxClip"
-        self.centre, self.rotation = _pose(centre, rotation, where)
+        self.center, self.rotation = _pose(center, rotation, where)
         half_size = _checks.float_leaf(half_size, "half_size", where)
         if half_size.shape not in ((), (3,)):
             raise ValueError(f"{where}: `half_size` must be one number or three (d, h, w), "
@@ -173,7 +173,7 @@ class BoxClip(Clip):
 
 class TorusClip(Clip):
     """A torus around the local first axis: its tube (radius ``minor``) circles at
-    ``major`` voxels from ``centre`` in the plane of the other two axes (the concave
+    ``major`` voxels from ``center`` in the plane of the other two axes (the concave
     clip of Titov et al., Figure 1). Its signed distance is 1-Lipschitz for any sizes
     and exact when ``major >= minor``."""
 
@@ -181,10 +181,10 @@ class TorusClip(Clip):
     minor: Float[Array, ""]
     sizes = ("major", "minor")
 
-    def __init__(self, *, centre: ArrayLike, major: ArrayLike, minor: ArrayLike,
+    def __init__(self, *, center: ArrayLike, major: ArrayLike, minor: ArrayLike,
                  rotation: ArrayLike | None = None):
         where = "volshade.TorusClip"
-        self.centre, self.rotation = _pose(centre, rotation, where)
+        self.center, self.rotation = _pose(center, rotation, where)
         self.major = _positive(major, "major", where)
         self.minor = _positive(minor, "minor", where)
 
@@ -193,11 +193,11 @@ class TorusClip(Clip):
 
 
 class HalfSpaceClip(Clip):
-    """Everything on the side of the plane through ``centre`` that the local first axis
+    """Everything on the side of the plane through ``center`` that the local first axis
     (``rotation[:, 0]``, by default ``+d``) points to: a cut-away."""
 
-    def __init__(self, *, centre: ArrayLike, rotation: ArrayLike | None = None):
-        self.centre, self.rotation = _pose(centre, rotation, "volshade.HalfSpaceClip")
+    def __init__(self, *, center: ArrayLike, rotation: ArrayLike | None = None):
+        self.center, self.rotation = _pose(center, rotation, "volshade.HalfSpaceClip")
 
     def _local_distance(self, u, v, w):
         return -jnp.broadcast_arrays(u, v, w)[0]
@@ -206,7 +206,7 @@ class HalfSpaceClip(Clip):
 def _checked(clip: Clip) -> Clip:
     """``clip`` with its traced leaves checked at run time (known ones were checked when
     it was built): finite, sizes > 0, an orthonormal rotation."""
-    leaves = [clip.centre, clip.rotation, *(getattr(clip, name) for name in clip.sizes)]
+    leaves = [clip.center, clip.rotation, *(getattr(clip, name) for name in clip.sizes)]
     finite = functools.reduce(jnp.logical_and, [jnp.all(jnp.isfinite(x)) for x in leaves])
     positive = functools.reduce(jnp.logical_and, [jnp.all(getattr(clip, name) > 0)
                                                   for name in clip.sizes], jnp.asarray(True))
@@ -222,7 +222,7 @@ def _voxel_distances(shape: tuple[int, int, int], clip: Clip) -> Array:
     ``(D, H, W, 3)`` array of points is built and multiplied."""
     clip = jax.tree_util.tree_map(lambda x: _checks.at_least_float32(x) if eqx.is_array(x)
                                   else x, _checked(clip))
-    offsets = [(jnp.arange(n, dtype=clip.centre.dtype) - clip.centre[k]).reshape(
+    offsets = [(jnp.arange(n, dtype=clip.center.dtype) - clip.center[k]).reshape(
         [n if a == k else 1 for a in range(3)]) for k, n in enumerate(shape)]
     local = [sum(offsets[k] * clip.rotation[k, j] for k in range(3)) for j in range(3)]
     return jnp.broadcast_to(clip._local_distance(*local), shape)
@@ -233,7 +233,7 @@ def _removed(distances: Array) -> Array:
 
 
 def _within_reach(distances: Array, radius, clip: Clip) -> Array:
-    scale = max(distances.shape) + jnp.max(jnp.abs(clip.centre))
+    scale = max(distances.shape) + jnp.max(jnp.abs(clip.center))
     margin = _REACH_MARGIN + _REACH_RELATIVE_MARGIN * jnp.finfo(distances.dtype).eps * scale
     return distances < jnp.asarray(radius, distances.dtype) + math.sqrt(3) + margin
 
@@ -264,7 +264,7 @@ def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
         ``(D, H, W)`` boolean, True where removed.
 
     Example:
-        >>> int(clip_mask((9, 9, 9), SphereClip(centre=(4.0, 4.0, 4.0), radius=1.0)).sum())
+        >>> int(clip_mask((9, 9, 9), SphereClip(center=(4.0, 4.0, 4.0), radius=1.0)).sum())
         7
     """
     where = "volshade.clip_mask"
