@@ -1,3 +1,4 @@
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -66,6 +67,19 @@ def test_trilinear_errors():
         trilinear(jnp.zeros((2, 2)), jnp.zeros(3))
     with pytest.raises(ValueError, match=r"not empty, got shape \(0, 3, 3\)"):
         trilinear(jnp.zeros((0, 3, 3)), jnp.zeros(3))
+
+
+@pytest.mark.parametrize("bad", [jnp.nan, jnp.inf, -jnp.inf])
+def test_trilinear_refuses_non_finite_volumes_and_points(bad):
+    """A NaN or inf voxel or point is refused by name, eagerly and under jit (it would
+    otherwise come back as NaN, or as a value sampled from the clamped end)."""
+    vol, pts = jnp.zeros((3, 3, 3)), jnp.ones((2, 3))
+    bad_vol, bad_pts = vol.at[1, 1, 1].set(bad), pts.at[1, 0].set(bad)
+    for args, name in (((bad_vol, pts), "`volume`"), ((vol, bad_pts), "`points`")):
+        with pytest.raises(ValueError, match=f"{name} contains NaN or inf"):
+            trilinear(*args, mode="nearest")
+        with pytest.raises(eqx.EquinoxRuntimeError, match=f"{name} contains NaN or inf"):
+            eqx.filter_jit(trilinear)(*args)
 
 
 @pytest.mark.parametrize("size", [3, 5])

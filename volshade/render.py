@@ -35,7 +35,7 @@ from .camera import Camera, box_half_extent, intersect_box
 from .composition import COMPOSITORS, Compositor, Sample
 from .gradient import regression_gradient
 from .importance import Importance, _sample_importance, normalized_gradient_magnitude
-from .sampling import trilinear
+from .sampling import _trilinear
 from .shading import SHADERS, Phong, Shader
 from .transfer import TransferFunction
 
@@ -244,14 +244,14 @@ def march_view(shared: Medium, camera: Camera, focus: Array | None = None
         t_mid = t_near + k * dt + 0.5 * seg
         index = (origins + t_mid[..., None] * directions + half_extent[None, None]) \
             * to_index[None, None] - 0.5
-        value = trilinear(volume, index, mode="nearest")
+        value = _trilinear(volume, index, "nearest")
         color, alpha0 = transfer._rgba(value)
         if opacity_scale is not None:
-            alpha0 = jnp.minimum(alpha0 * trilinear(opacity_scale, index, mode="nearest"), 1)
+            alpha0 = jnp.minimum(alpha0 * _trilinear(opacity_scale, index, "nearest"), 1)
         alpha = correct_opacity(alpha0, seg * scale / transfer.step0)
         amb = jnp.ones((*batch, 1), dtype) if ambient is None else \
-            trilinear(ambient, index, mode="nearest").reshape(*batch, -1)
-        grad = None if gradient is None else trilinear(gradient, index, mode="nearest")
+            _trilinear(ambient, index, "nearest").reshape(*batch, -1)
+        grad = None if gradient is None else _trilinear(gradient, index, "nearest")
         shaded = shared.shader.fn(color, grad, eye_dir, eye_dir, amb, shared.phong)
         sample_imp = None
         if measured:
@@ -259,7 +259,7 @@ def march_view(shared: Medium, camera: Camera, focus: Array | None = None
             sample_imp, darkening = _sample_importance(
                 shared.importance,
                 {"intensity": value, "extinction": tau, "optical_depth": depth,
-                 "gradient_magnitude": trilinear(shared.magnitude, index, mode="nearest")},
+                 "gradient_magnitude": _trilinear(shared.magnitude, index, "nearest")},
                 {"normal": -grad, "view": eye_dir, "light": eye_dir}, focus,
                 check_finite=False)
             shaded = shaded * darkening[..., None]

@@ -44,7 +44,8 @@ def trilinear(
 
     Raises:
         ValueError: ``volume`` is not 3-D or 4-D or is empty, ``points`` does not end in 3,
-            or ``mode`` is unknown.
+            ``mode`` is unknown, or ``volume`` or ``points`` holds NaN or inf (at run
+            time, an ``EquinoxRuntimeError``, when they are traced).
 
     Example:
         >>> vol = jnp.arange(8.0).reshape(2, 2, 2)
@@ -54,18 +55,27 @@ def trilinear(
     where = "volshade.sampling.trilinear"
     scipy_mode = _checks.option(mode, _MODES, "mode", where)
     volume = _checks.as_float_array(volume, "volume", where)
-    # coordinates in at least float32: half precision cannot even hold index 257
-    work = jnp.promote_types(volume.dtype, jnp.float32)
-    points = jnp.asarray(points, dtype=work)
+    points = _checks.as_float_array(points, "points", where)
     if volume.ndim not in (3, 4) or 0 in volume.shape:
         raise ValueError(f"{where}: `volume` must be (D, H, W) or (D, H, W, C), not empty, "
                          f"got shape {volume.shape}.")
     if points.ndim < 1 or points.shape[-1] != 3:
         raise ValueError(f"{where}: `points` must have shape (..., 3), got {points.shape}.")
+    volume = _checks.finite(volume, "volume", where)
+    points = _checks.finite(points, "points", where)
+    return _trilinear(volume, points, scipy_mode)
+
+
+def _trilinear(volume: Array, points: Array, mode: str) -> Array:
+    """:func:`trilinear` without its checks, for callers whose volume and points are
+    checked already (the renderer's march)."""
+    # coordinates in at least float32: half precision cannot even hold index 257
+    work = jnp.promote_types(volume.dtype, jnp.float32)
+    points = points.astype(work)
 
     def scalar(vol: Array) -> Array:
         coords = [points[..., i] for i in range(3)]
-        out = map_coordinates(vol.astype(work), coords, order=1, mode=scipy_mode, cval=0.0)
+        out = map_coordinates(vol.astype(work), coords, order=1, mode=mode, cval=0.0)
         return out.astype(volume.dtype)
 
     if volume.ndim == 3:
