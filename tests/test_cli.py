@@ -1,5 +1,8 @@
 import pathlib
+import subprocess
+import sys
 
+import numpy as np
 import pytest
 from skimage import io
 
@@ -14,6 +17,37 @@ def test_render_command_writes_a_png(tmp_path):
     img = io.imread(out)
     assert img.shape == (24, 24, 3)
     assert img.std() > 5  # not a blank frame: the phantom is visible against the background
+
+
+def test_render_picks_the_volumes_preset_and_classification(tmp_path, monkeypatch):
+    """Without --preset, the corner phantom gets its own preset, classified before
+    interpolation (its walls are labels): the floor is white and the walls pure blue and
+    green; the grey preset would draw the walls grey."""
+    presets, classifications = [], []
+    render, preset = cli.render, cli.transfer.preset
+
+    def spy_render(scene, cam):
+        classifications.append(scene.classification)  # static: known while traced
+        return render(scene, cam)
+
+    monkeypatch.setattr(cli, "render", spy_render)
+    monkeypatch.setattr(cli.transfer, "preset", lambda name: presets.append(name) or preset(name))
+    out = tmp_path / "corner.png"
+    assert cli.main(["render", "corner", "--out", str(out), "--size", "16", "--image", "24"]) == 0
+    assert (presets, classifications) == (["corner"], ["pre"])
+    img = io.imread(out).astype(int)
+    # the walls in their own blue and green, and a white (grey-level) floor
+    assert (img[..., 1] - img[..., 0] > 60).any() and (img[..., 2] - img[..., 0] > 60).any()
+    assert (np.ptp(img, axis=-1) < 3)[img.max(axis=-1) > 60].mean() > 0.2
+    assert cli.main(["render", "shells", "--out", str(out), "--size", "16", "--image", "8"]) == 0
+    assert (presets, classifications) == (["corner", "shells"], ["pre", "post"])
+
+
+def test_python_m_volshade_runs_the_cli():
+    result = subprocess.run([sys.executable, "-m", "volshade", "render", "--help"],
+                            capture_output=True, text=True, check=False)
+    assert result.returncode == 0
+    assert "(default: 256)" in result.stdout and "--classification" in result.stdout
 
 
 def test_demo_writes_pngs(tmp_path, monkeypatch):

@@ -1,11 +1,14 @@
-"""The ``volshade`` command: ``volshade demo`` and ``volshade render VOLUME``.
+"""The ``volshade`` command (also ``python -m volshade``): ``volshade demo`` and
+``volshade render VOLUME``.
 
     volshade demo [--out DIR] [--size N] [--image N] [--downsample F]
     volshade render VOLUME --out img.png [--preset NAME] [--azimuth A] [--elevation E] ...
 
 VOLUME is a phantom name (shells, corner, orange, bucky, noise), a real-data
 name (colin27, mni152, mni152_gm, mni152_wm: found via VOLSHADE_DATA) or a path to a
-NIfTI file.
+NIfTI file. The transfer function defaults to the volume's own preset (shells,
+corner, head for colin27; grey otherwise), and the corner phantom's labels are
+classified before interpolation.
 """
 
 import argparse
@@ -36,6 +39,12 @@ class Job:
     name: str
     make_scene: Callable[[], Scene]
     camera: Camera
+
+
+# volumes with a preset of their own (any other: "grey"), and label volumes, which are
+# classified before interpolation (see volshade.render.march)
+_PRESETS = {"shells": "shells", "corner": "corner", "colin27": "head"}
+_LABELS = ("corner",)
 
 
 def _load_volume(spec: str, downsample: int, size: int):
@@ -133,12 +142,14 @@ def render_command(args: argparse.Namespace) -> int:
     if args.out.is_dir() or args.out.suffix.lower() != ".png":
         raise ValueError(f"--out must name a .png file, got {str(args.out)!r}.")
     vol, spacing = _load_volume(args.volume, args.downsample, args.size)
-    tf = transfer.preset(args.preset)
+    tf = transfer.preset(args.preset or _PRESETS.get(args.volume, "grey"))
+    classification = args.classification or ("pre" if args.volume in _LABELS else "post")
     cam = Camera.orbit(azimuth=args.azimuth, elevation=args.elevation, distance=args.distance,
                        image_shape=(args.image, args.image), projection=args.projection)
     step = args.step if args.step is not None else float(min(spacing)) / 2
     scene = Scene(volume=vol, spacing=spacing, transfer=tf, shading=args.shading,
-                  ambient=args.ambient, step=step, background=tuple(args.background))
+                  ambient=args.ambient, step=step, background=tuple(args.background),
+                  classification=classification)
     with tqdm(total=1, desc=f"rendering {args.volume}", unit="image") as bar:
         t0 = time.perf_counter()
         image = jax.block_until_ready(eqx.filter_jit(render)(scene, cam))
@@ -150,34 +161,63 @@ def render_command(args: argparse.Namespace) -> int:
     return 0
 
 
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written, and each option's default (where it has one)
+    after its help."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.option_strings and action.default not in (None, argparse.SUPPRESS) \
+                and not isinstance(action, argparse._HelpAction):
+            text += f"{' ' if text else ''}(default: %(default)s)"
+        return text
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="volshade", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     formatter_class=_Formatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    p_demo = sub.add_parser("demo", help="render built-in phantoms (and Colin27) to PNGs")
-    p_demo.add_argument("--out", type=pathlib.Path, default=pathlib.Path("volshade-demo"))
+    p_demo = sub.add_parser("demo", help="render built-in phantoms (and Colin27) to PNGs",
+                            formatter_class=_Formatter)
+    p_demo.add_argument("--out", type=pathlib.Path, default=pathlib.Path("volshade-demo"),
+                        help="folder for the PNGs")
     p_demo.add_argument("--size", type=int, default=96, help="phantom edge in voxels")
     p_demo.add_argument("--image", type=int, default=256, help="image edge in pixels")
     p_demo.add_argument("--downsample", type=int, default=2,
                         help="integer block-mean factor for the real head")
-    p_render = sub.add_parser("render", help="render one volume to a PNG")
+    p_render = sub.add_parser("render", help="render one volume to a PNG",
+                              formatter_class=_Formatter)
     p_render.add_argument("volume", help="phantom name, dataset name or NIfTI path")
-    p_render.add_argument("--out", type=pathlib.Path, required=True)
-    p_render.add_argument("--preset", default="grey", help=f"one of {', '.join(transfer.PRESETS)}")
-    p_render.add_argument("--shading", default="phong", choices=list(SHADERS))
+    p_render.add_argument("--out", type=pathlib.Path, required=True, help="the PNG to write")
+    p_render.add_argument("--preset", default=None,
+                          help=f"one of {', '.join(transfer.PRESETS)} (default: the volume's "
+                               f"own: shells, corner, head for colin27, grey otherwise)")
+    p_render.add_argument("--classification", default=None, choices=["post", "pre"],
+                          help="classify interpolated values (post) or interpolate classified "
+                               "voxels (pre, for labels; default: pre for the corner phantom, "
+                               "post otherwise)")
+    p_render.add_argument("--shading", default="phong", choices=list(SHADERS),
+                          help="local shading")
     # "volume" needs a volume and "feature_ao" its features: neither fits on a command line
     p_render.add_argument("--ambient", default="none",
-                          choices=[a for a in AMBIENT if a not in ("volume", "feature_ao")])
-    p_render.add_argument("--azimuth", type=float, default=30.0)
-    p_render.add_argument("--elevation", type=float, default=20.0)
-    p_render.add_argument("--distance", type=float, default=2.5)
+                          choices=[a for a in AMBIENT if a not in ("volume", "feature_ao")],
+                          help="ambient term")
+    p_render.add_argument("--azimuth", type=float, default=30.0,
+                          help="degrees about the d axis; 0 looks along -h (a head from the front)")
+    p_render.add_argument("--elevation", type=float, default=20.0,
+                          help="degrees; 90 looks down from +d")
+    p_render.add_argument("--distance", type=float, default=2.5,
+                          help="from the volume's centre; its longest side is 1")
     p_render.add_argument("--projection", default="perspective",
-                          choices=["perspective", "orthographic"])
+                          choices=["perspective", "orthographic"], help="camera projection")
     p_render.add_argument("--image", type=int, default=256, help="image edge in pixels")
     p_render.add_argument("--size", type=int, default=96, help="phantom edge in voxels")
-    p_render.add_argument("--downsample", type=int, default=1)
-    p_render.add_argument("--step", type=float, default=None, help="sample distance in mm")
-    p_render.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0))
+    p_render.add_argument("--downsample", type=int, default=1,
+                          help="integer block-mean factor for real data")
+    p_render.add_argument("--step", type=float, default=None,
+                          help="sample distance in mm (default: half the smallest voxel edge)")
+    p_render.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0),
+                          metavar=("R", "G", "B"), help="colour behind the volume, in [0, 1]")
     return parser
 
 

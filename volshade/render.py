@@ -8,7 +8,11 @@ so the segment lengths add up exactly to the ray's path through the box and a
 uniform medium reproduces Beer--Lambert, $T = e^{-\tau \ell}$. Samples past
 the exit point have length 0, hence opacity 0. Intensities are interpolated
 trilinearly with the ``"nearest"`` boundary rule (uniform right up to the
-faces) and classified after interpolation; opacities are corrected to each
+faces) and classified after interpolation (``classification="post"``), or the
+voxels are classified first and their opacity-weighted colours
+$(\alpha_0 c, \alpha_0)$ interpolated (``"pre"``, for label volumes, whose
+interpolated values would pass through the classes between two labels;
+Wittenbrink, Malzbender and Goss 1998). Opacities are corrected to each
 segment's length (:meth:`volshade.TransferFunction.opacity`).
 
 The march is a ``lax.scan`` over samples carrying all pixels at once; its
@@ -29,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import correct_opacity, log1m, quotient, tiny
+from ._numerics import correct_opacity, log1m, quotient, safe_div, tiny
 from ._types import Array, Float
 from .camera import Camera, box_half_extent, intersect_box
 from .composition import COMPOSITORS, Compositor, Sample
@@ -71,6 +75,7 @@ def march(
     opacity_scale: Float[Array, "D H W"] | None = None,
     importance: Importance | None = None,
     focus: Float[Array, "H W"] | None = None,
+    classification: str = "post",
 ) -> Float[Array, "H W 4"]:
     """Render a volume by front-to-back ray marching.
 
@@ -100,6 +105,15 @@ def march(
             ln(1 + tau) is about 4.5 in float32 and 6.6 in float64 for 1 mm).
         focus: optional ``(H, W)`` per-ray global weights (focus plus context,
             :func:`~volshade.importance.focus_weights`), for ``composition="importance"``.
+        classification: ``"post"`` (default): classify each sample's interpolated
+            intensity. ``"pre"``: classify the voxels and interpolate the
+            opacity-weighted colour $\alpha_0 c$ and the opacity $\alpha_0$, the
+            colour being their quotient (0 where $\alpha_0 = 0$). Use ``"pre"`` for
+            label volumes (each value a class, like the ``"corner"`` phantom's
+            walls): post-classification renders the classes that lie between two
+            labels' values where they meet (or meet the air). For a transfer
+            function whose opacity is linear and colour constant over the
+            volume's values the two are equal.
 
     Returns:
         ``(H, W, 4)``: RGB with the background blended in, and the accumulated
@@ -118,7 +132,7 @@ def march(
     shared = medium(volume, transfer, spacing=spacing, step=step, shading=shading,
                     phong=phong, ambient=ambient, composition=composition,
                     background=background, opacity_scale=opacity_scale,
-                    importance=importance)
+                    importance=importance, classification=classification)
     return march_view(shared, camera, focus)
 
 
@@ -140,11 +154,16 @@ class Medium(NamedTuple):
     background: Array
     gradient: Array | None
     magnitude: Array | None
+    classified: Array | None
+
+
+_CLASSIFICATIONS = {"post": "classify interpolated intensities",
+                    "pre": "interpolate classified voxels (opacity-weighted colours)"}
 
 
 def medium(
     volume, transfer, *, spacing, step, shading, phong, ambient, composition, background,
-    opacity_scale, importance,
+    opacity_scale, importance, classification="post",
 ) -> Medium:
     """The view-independent part of :func:`march` (same arguments): its checks, and
     the gradient volume when the shading or the compositing needs it."""
@@ -155,6 +174,7 @@ def medium(
     step = _checks.positive_float(step, "step", where)
     shader = _checks.option(shading, SHADERS, "shading", where)
     comp = _checks.option(composition, COMPOSITORS, "composition", where)
+    _checks.option(classification, _CLASSIFICATIONS, "classification", where)
     dtype = volume.dtype
     if ambient is not None:
         ambient = _checks.as_float_array(ambient, "ambient", where).astype(dtype)
@@ -192,13 +212,18 @@ def medium(
     phong = Phong() if phong is None else phong
     if shader.needs_gradient:  # the lit shaders, which read the Phong coefficients
         phong = phong.checked()
+    classified = None
+    if classification == "pre":
+        color, alpha0 = transfer._rgba(volume)
+        classified = jnp.concatenate([alpha0[..., None] * color, alpha0[..., None]], axis=-1)
     return Medium(
         volume=volume, transfer=transfer, spacing=spacing, step=step, shader=shader,
         compositor=comp, phong=phong, ambient=ambient, opacity_scale=opacity_scale,
         importance=(Importance() if importance is None else importance.checked())
         if measured else None,
         background=background, gradient=gradient,
-        magnitude=normalized_gradient_magnitude(gradient) if measured else None)
+        magnitude=normalized_gradient_magnitude(gradient) if measured else None,
+        classified=classified)
 
 
 def march_view(shared: Medium, camera: Camera, focus: Array | None = None
@@ -244,8 +269,14 @@ def march_view(shared: Medium, camera: Camera, focus: Array | None = None
         t_mid = t_near + k * dt + 0.5 * seg
         index = (origins + t_mid[..., None] * directions + half_extent[None, None]) \
             * to_index[None, None] - 0.5
-        value = _trilinear(volume, index, "nearest")
-        color, alpha0 = transfer._rgba(value)
+        value = _trilinear(volume, index, "nearest") \
+            if shared.classified is None or measured else None
+        if shared.classified is None:
+            color, alpha0 = transfer._rgba(value)
+        else:
+            weighted = _trilinear(shared.classified, index, "nearest")
+            alpha0 = weighted[..., 3]
+            color = safe_div(weighted[..., :3], alpha0[..., None])
         if opacity_scale is not None:
             alpha0 = jnp.minimum(alpha0 * _trilinear(opacity_scale, index, "nearest"), 1)
         alpha = correct_opacity(alpha0, seg * scale / transfer.step0)

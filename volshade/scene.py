@@ -27,7 +27,7 @@ from .feature_ao import FeatureAmbientOcclusion
 from .importance import Focus, Importance
 from .lao import LocalAmbientOcclusion
 from .obscurance import ObscuranceParams
-from .render import march_view, medium
+from .render import _CLASSIFICATIONS, march_view, medium
 from .saliency import SaliencyModulation
 from .shading import SHADERS, Phong
 from .transfer import TransferFunction
@@ -110,6 +110,10 @@ class Scene(eqx.Module):
     Attributes:
         volume: ``(D, H, W)`` intensities.
         transfer: the transfer function.
+        classification: ``"post"`` (default: classify interpolated intensities) or
+            ``"pre"`` (interpolate the classified voxels' opacity-weighted colours:
+            for label volumes, such as the ``"corner"`` phantom; see
+            :func:`~volshade.render.march`) (static).
         spacing: voxel size ``(sd, sh, sw)`` in mm (static).
         step: sampling distance along rays in mm (static).
         ambient: ambient term: ``"none"``, ``"volume"`` (use ``ambient_volume``),
@@ -161,6 +165,7 @@ class Scene(eqx.Module):
 
     volume: Float[Array, "D H W"] = eqx.field(converter=_as_array)
     transfer: TransferFunction
+    classification: str = eqx.field(static=True, default="post")
     spacing: tuple[float, float, float] = eqx.field(static=True, default=(1.0, 1.0, 1.0),
                                                     converter=lambda s: _checks.spacing(s, _WHERE))
     step: float = eqx.field(static=True, default=0.5)
@@ -200,6 +205,7 @@ class Scene(eqx.Module):
         _checks.option(self.modulation, MODULATION, "modulation", _WHERE)
         _checks.option(self.shading, SHADERS, "shading", _WHERE)
         _checks.option(self.composition, COMPOSITORS, "composition", _WHERE)
+        _checks.option(self.classification, _CLASSIFICATIONS, "classification", _WHERE)
         if self.ambient == "volume" and self.ambient_volume is None:
             raise ValueError(f"{_WHERE}: ambient='volume' needs `ambient_volume`.")
         # given but never used: a render without them would look as if they had no effect
@@ -367,7 +373,8 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
     shared = medium(scene.volume, scene.transfer, spacing=scene.spacing, step=scene.step,
                     shading=scene.shading, phong=scene.phong, ambient=ambient,
                     opacity_scale=opacity_scale, composition=scene.composition,
-                    importance=scene.importance, background=scene.background)
+                    importance=scene.importance, background=scene.background,
+                    classification=scene.classification)
 
     def view(cam: Camera) -> Array:
         focus = None if scene.focus is None else scene.focus.weights(cam.image_shape)

@@ -352,10 +352,8 @@ def _preset_head_skull() -> TransferFunction:
 
 def _preset_corner() -> TransferFunction:
     # Intensities of the corner phantom's walls: 0.5 green, 0.75 blue, 1.0 white. The walls
-    # are labels: rendered with this function (post-classification), the values between
-    # air and a wall pass through the lower walls' bands, so surfaces show banded rings of
-    # the other colours; experiments/corner_colour_bleeding.py classifies the walls first
-    # (a white transfer function and the colours as an ambient volume) for that reason.
+    # are labels: classified after interpolation, the values between air and a wall pass
+    # through the lower walls' bands, so render them with classification="pre".
     return TransferFunction.from_points([
         (0.0, 0, 0, 0, 0.0), (0.25, 0.1, 0.8, 0.1, 0.0), (0.5, 0.1, 0.8, 0.1, 1.0),
         (0.625, 0.1, 0.8, 0.1, 1.0), (0.626, 0.1, 0.2, 0.9, 1.0), (0.75, 0.1, 0.2, 0.9, 1.0),
@@ -377,12 +375,11 @@ def preset(name: str) -> TransferFunction:
 
     ``"grey"``, ``"shells"`` (the shells phantom), ``"head"`` and ``"head_skull"``
     (Colin27 T1; the latter with the skull band), ``"corner"`` (the corner phantom's
-    labels: 0.5 green, 0.75 blue, 1.0 white). The corner phantom's walls are labels,
-    and the renderer classifies after interpolating: between air and the white wall
-    the values pass through the green and blue bands, so the white floor shows rings
-    of those colours. To render labels in their own colours, classify the walls first
-    (a white transfer function and the colours as an ambient volume, as
-    ``experiments/corner_colour_bleeding.py`` does).
+    labels: 0.5 green, 0.75 blue, 1.0 white). The corner phantom's walls are labels:
+    classified after interpolation (the renderer's default), the values between air
+    and the white wall pass through the green and blue bands, and the floor shows
+    rings of those colours. Render labels with ``Scene(classification="pre")``, which
+    interpolates the classified voxels instead.
 
     Raises:
         ValueError: unknown name (the message lists the valid ones).
