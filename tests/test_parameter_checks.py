@@ -122,6 +122,9 @@ def test_nested_lists_become_arrays():
      "`radius` must be a number"),
     (lambda: vs.Scene(volume=VOL, transfer=TF, step="0.5"), TypeError, "`step` must be a number"),
     (lambda: vs.Focus(radius=0.0), ValueError, "`radius` must be > 0 .*image height"),
+    (lambda: vs.Focus(center=(32.0, 32.0)), ValueError, "`center` must be .*fractions .*"
+     "focus_weights"),
+    (lambda: vs.Focus(center=(0.5, -0.1)), ValueError, r"in \[0, 1\]"),
     (lambda: vs.Importance(darkening=-10.0), ValueError, "`darkening` must be >= 0"),
     (lambda: vs.Importance(specular_exponent=-1.0), ValueError, "`specular_exponent` must be > 0"),
     (lambda: vs.Importance(silhouette_start=0.9, silhouette_end=0.1), ValueError,

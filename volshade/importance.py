@@ -548,7 +548,8 @@ class Focus(eqx.Module):
 
     Attributes:
         center: ``(2,)`` focus centre ``(row, column)`` as fractions of the image
-            height and width (``(0.5, 0.5)`` is the centre).
+            height and width, in [0, 1] (``(0.5, 0.5)`` is the centre; a centre in
+            pixels is refused: that is :func:`focus_weights`'s convention).
         radius: radius as a fraction of the image height.
         kind: ``"circular"``, ``"gaussian"`` or ``"screen_door"`` (static).
         inside, outside: global weights at the focus centre and far from it.
@@ -570,7 +571,11 @@ class Focus(eqx.Module):
             raise ValueError(f"volshade.Focus: `center` must be (row, column) fractions, "
                              f"got shape {jnp.shape(self.center)}.")
         _checks.refuse(self, [(~(self.radius > 0), "`radius` must be > 0 (a fraction of the "
-                                                   "image height).")],
+                                                   "image height)."),
+                              # pixel coordinates would put the focus far off the image
+                              (jnp.any((self.center < 0) | (self.center > 1)),
+                               "`center` must be (row, column) fractions of the image in "
+                               "[0, 1]; for a centre in pixels use volshade.focus_weights.")],
                        "volshade.Focus", traced=False)  # traced: by focus_weights, in pixels
 
     def _without_gradient(self) -> dict[str, str]:
