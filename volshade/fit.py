@@ -66,7 +66,9 @@ class Fit(eqx.Module):
             values.
         initial_loss: $\mathcal{L}$ at the initial values.
         steps: the number of solver steps taken.
-        result: the solver's ``optimistix.RESULTS`` (``successful`` or why it stopped).
+        result: the solver's ``optimistix.RESULTS`` (``successful`` or why it stopped;
+            ``result == optimistix.RESULTS.successful`` tests it, and a successful
+            result prints as ``RESULTS<>``, its message being empty).
     """
 
     scene: Scene
