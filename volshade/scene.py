@@ -110,10 +110,6 @@ class Scene(eqx.Module):
     Attributes:
         volume: ``(D, H, W)`` intensities.
         transfer: the transfer function.
-        classification: ``"post"`` (default: classify interpolated intensities) or
-            ``"pre"`` (interpolate the classified voxels' opacity-weighted colours:
-            for label volumes, such as the ``"corner"`` phantom; see
-            :func:`~volshade.render.march`) (static).
         spacing: voxel size ``(sd, sh, sw)`` in mm (static).
         step: sampling distance along rays in mm (static).
         ambient: ambient term: ``"none"``, ``"volume"`` (use ``ambient_volume``),
@@ -155,6 +151,10 @@ class Scene(eqx.Module):
             refused with it. Gradients (Phong normals, importance) are those of the
             unclipped volume, so a cut face is shaded with the normals of the tissue
             it cuts through.
+        classification: ``"post"`` (default: classify interpolated intensities) or
+            ``"pre"`` (interpolate the classified voxels' opacity-weighted colours:
+            for label volumes, such as the ``"corner"`` phantom; see
+            :func:`~volshade.render.march`) (static).
 
     Example:
         >>> vol = jnp.zeros((8, 8, 8))
@@ -165,7 +165,6 @@ class Scene(eqx.Module):
 
     volume: Float[Array, "D H W"] = eqx.field(converter=_as_array)
     transfer: TransferFunction
-    classification: str = eqx.field(static=True, default="post")
     spacing: tuple[float, float, float] = eqx.field(static=True, default=(1.0, 1.0, 1.0),
                                                     converter=lambda s: _checks.spacing(s, _WHERE))
     step: float = eqx.field(static=True, default=0.5)
@@ -185,6 +184,8 @@ class Scene(eqx.Module):
     background: Float[Array, "3"] = eqx.field(
         converter=_checks.leaf("volshade.Scene", "background"), default=(0.0, 0.0, 0.0))
     clip: Clip | None = None
+    # last: the fields before it keep their positions
+    classification: str = eqx.field(static=True, default="post")
 
     def __check_init__(self):
         _checks.as_float_array(self.volume, "volume", _WHERE)
