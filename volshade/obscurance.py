@@ -832,13 +832,16 @@ class ObscuranceParams(eqx.Module):
     Attributes:
         d_max: maximum occluder distance in voxels.
         low, high: display thresholds (:func:`threshold`; 0 and 1 leave values as they
-            are). A voxel on a surface is occluded by the object behind it in at least
-            half its directions, so its obscurance is at most about 0.5 (0.31 at the
-            median over the Colin27 skin voxels, head preset, 42 directions, d_max 32)
-            and ``shading="obscurance"``, which scales all the lighting by it, renders
-            surfaces at half the brightness of ``"phong"`` or less. ``high`` at 0.5 to
-            0.7 gives flat surfaces their full brightness back and darkens only creases
-            and cavities (the paper's Figure 1 uses low/high 0/1, 0.4/0.6, 0.6/0.7).
+            are). Where the density rises into an object (measured data, or after
+            ``smoothing``), the denser voxels behind a surface occlude up to half of
+            its directions at short distances, where rho is small: the obscurance at
+            surfaces is well below 1 (0.31 at the median over the Colin27 skin
+            voxels, head preset, 42 directions, d_max 32; 0.69 at a flat face of a
+            solid blurred by one voxel), so ``shading="obscurance"``, which scales all
+            the lighting by it, renders surfaces darker than ``"phong"``. ``high`` at
+            0.5 to 0.7 gives flat surfaces their brightness back and darkens only
+            creases and cavities (the paper's Figure 1 uses low/high 0/1, 0.4/0.6,
+            0.6/0.7).
         rho: name of a rho function (:data:`RHO_FUNCTIONS`).
         level: icosphere level of the directions: 0, 1, 2 for 12, 42, 162.
         color_bleeding: tint by the occluders' transfer-function colours (eq. 3).
