@@ -496,8 +496,14 @@ def test_pre_classification_equals_post_for_a_linear_transfer_function():
     vol = _smooth_volume(9, seed=2)
     tf = TransferFunction.from_points([(0.0, 0.3, 0.7, 0.2, 0.05), (1.0, 0.3, 0.7, 0.2, 0.85)])
     cam = Camera.orbit(azimuth=35.0, elevation=-20.0, image_shape=(7, 6))
+    rng = np.random.default_rng(7)
+    extras = {"ambient": jnp.asarray(rng.uniform(0.3, 1.0, (*vol.shape, 3))),
+              "opacity_scale": jnp.asarray(rng.uniform(0.0, 2.0, vol.shape)),
+              "focus": vs.focus_weights((7, 6), center=(3.0, 2.0), radius=2.5)}
     for kw in ({"shading": "none"}, {"shading": "phong"},
-               {"composition": "importance", "importance": vs.Importance(intensity=2.0)}):
+               {"composition": "importance", "importance": vs.Importance(intensity=2.0)},
+               {"composition": "importance", "shading": "phong",
+                "importance": vs.Importance(intensity=2.0, gradient=1.0), **extras}):
         post = march(vol, tf, cam, step=0.4, **kw)
         pre = march(vol, tf, cam, step=0.4, classification="pre", **kw)
         np.testing.assert_allclose(pre, post, atol=1e-13)
