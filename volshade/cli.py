@@ -167,8 +167,7 @@ class _Formatter(argparse.RawDescriptionHelpFormatter):
 
     def _get_help_string(self, action):
         text = action.help or ""
-        if action.option_strings and action.default not in (None, argparse.SUPPRESS) \
-                and not isinstance(action, argparse._HelpAction):
+        if action.option_strings and action.default not in (None, argparse.SUPPRESS):
             text += f"{' ' if text else ''}(default: %(default)s)"
         return text
 
