@@ -17,6 +17,9 @@ def _label(opacity_column):
 
 
 def merge_reference(ao, opacities, merge):
+    # the library's threshold: the epsilon of the dtype it merges in (ao's), taken before
+    # the reference converts to float64
+    eps = np.finfo(np.asarray(ao).dtype).eps
     ao = np.asarray(ao, np.float64)
     opacities = np.asarray(opacities, np.float64)
     shape = ao.shape[1:]
@@ -42,7 +45,7 @@ def merge_reference(ao, opacities, merge):
                 continue
             weights = [opacities[(slice(None), *y)].max() for y in neighbours]
             total = sum(weights)
-            if total > np.finfo(ao.dtype).eps:  # else: as empty (see volshade.feature_ao)
+            if total > eps:  # else: as empty (see volshade.feature_ao)
                 out[x] = sum(w * own(y) for w, y in zip(weights, neighbours, strict=True)) / total
             else:
                 out[x] = ao[(slice(None), *x)].min()
@@ -55,4 +58,5 @@ def feature_ao_reference(opacities, directions, radius, offset, samples, merge, 
     """Feature-driven AO of the stacked feature opacities ``(F, D, H, W)``, float64."""
     ao = np.stack([np.asarray(lao_reference(a, directions, radius, offset, samples,
                                             **lao_options)) for a in opacities])
-    return merge_reference(ao, opacities, merge)
+    # in the opacities' dtype, whose epsilon the merge's threshold is (merge_reference)
+    return merge_reference(ao.astype(np.asarray(opacities).dtype), opacities, merge)

@@ -409,3 +409,15 @@ def test_scene_corrects_feature_opacities_to_the_voxel_step():
     np.testing.assert_allclose(np.asarray(aos[0]), np.asarray(params(vol, base=per_mm, step=2.0)),
                                atol=1e-12)
     assert np.abs(np.asarray(aos[0] - params(vol, base=per_mm))).max() > 0.01
+
+
+def test_neighbourhood_merge_falls_back_below_the_dtypes_epsilon():
+    """A float32 neighbourhood whose summed opacity is below float32's epsilon (but far
+    above float64's) takes the "max" merge, as the reference does in that dtype."""
+    ao = np.stack([np.full((3, 3, 3), 0.9), np.full((3, 3, 3), 0.4)]).astype(np.float32)
+    opacities = np.zeros((2, 3, 3, 3), np.float32)
+    opacities[0, 0, 0, 0] = opacities[1, 2, 2, 2] = 1e-9
+    got = vs.merge_feature_ao(jnp.asarray(ao), jnp.asarray(opacities), merge="neighbourhood")
+    np.testing.assert_array_equal(np.asarray(got)[1, 1, 1], np.float32(0.4))
+    np.testing.assert_allclose(np.asarray(got), merge_reference(ao, opacities, "neighbourhood"),
+                               rtol=0, atol=1e-7)
