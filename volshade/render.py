@@ -269,14 +269,14 @@ def march_view(shared: Medium, camera: Camera, focus: Array | None = None
         t_mid = t_near + k * dt + 0.5 * seg
         index = (origins + t_mid[..., None] * directions + half_extent[None, None]) \
             * to_index[None, None] - 0.5
-        value = _trilinear(volume, index, "nearest") \
-            if shared.classified is None or measured else None
         if shared.classified is None:
+            value = _trilinear(volume, index, "nearest")
             color, alpha0 = transfer._rgba(value)
-        else:
+        else:  # pre-classified: the intensity is read only for the importance measures
             weighted = _trilinear(shared.classified, index, "nearest")
             alpha0 = weighted[..., 3]
             color = safe_div(weighted[..., :3], alpha0[..., None])
+            value = _trilinear(volume, index, "nearest") if measured else None
         if opacity_scale is not None:
             alpha0 = jnp.minimum(alpha0 * _trilinear(opacity_scale, index, "nearest"), 1)
         alpha = correct_opacity(alpha0, seg * scale / transfer.step0)
