@@ -1,3 +1,4 @@
+import dataclasses
 import re
 import sys
 
@@ -172,13 +173,46 @@ def test_scene_errors():
                               ("importance", 2.0, "Importance"),
                               ("obscurance", 16.0, "ObscuranceParams"),
                               ("phong", {"ambient": 0.2}, "Phong"),
-                              ("saliency", None, "SaliencyModulation"),
+                              ("saliency", 0.2, "SaliencyModulation"),
                               ("focus", (0.5, 0.5), "Focus")):
         with pytest.raises(TypeError, match=f"`{name}` must be a volshade.{kind}, got"):
             Scene(volume=_volume(), transfer=tf, composition="importance", **{name: value})
     with pytest.raises(TypeError, match="`scene` must be a volshade.Scene, got ArrayImpl; wrap"):
         render(_volume(), Camera.orbit(image_shape=(4, 4)))
-    assert isinstance(Scene(volume=_volume(), transfer=tf).phong, Phong)
+
+
+
+def test_effect_parameters_default_when_used_and_are_refused_when_not():
+    tf = preset("grey")
+    plain = Scene(volume=_volume(), transfer=tf)
+    assert (plain.lao, plain.obscurance, plain.saliency, plain.phong, plain.importance) == (
+        None,) * 5
+    used = Scene(volume=_volume(), transfer=tf, ambient="lao", shading="obscurance",
+                 composition="importance")
+    # the defaults, as leaves a fit can name
+    assert eqx.tree_equal(used.lao, LocalAmbientOcclusion())
+    assert eqx.tree_equal(used.phong, Phong())
+    assert eqx.tree_equal(used.importance, Importance())
+    assert isinstance(Scene(volume=_volume(), transfer=tf, ambient="obscurance").obscurance,
+                      ObscuranceParams)
+    assert isinstance(Scene(volume=_volume(), transfer=tf, modulation="saliency").saliency,
+                      SaliencyModulation)
+    # given, but the scene never reads them: a render would look as if they did nothing
+    for name, value, wanted in (
+            ("lao", LocalAmbientOcclusion(4.0), "ambient='lao'"),
+            ("obscurance", ObscuranceParams(d_max=8.0), "ambient='obscurance'"),
+            ("saliency", SaliencyModulation(), "modulation='saliency'"),
+            ("phong", Phong(ambient=0.2), "shading='phong' or shading='obscurance'"),
+            ("importance", Importance(intensity=2.0), "composition='importance'")):
+        with pytest.raises(ValueError, match=f"`{name}` is used only with {wanted}, got "
+                                             f"[a-z]+='(none|standard)'; set .* or leave "
+                                             f"`{name}` out"):
+            Scene(volume=_volume(), transfer=tf, **{name: value})
+    # given explicitly and used: kept, not replaced by the defaults
+    lit = Scene(volume=_volume(), transfer=tf, shading="phong", phong=Phong(ambient=0.2))
+    assert float(lit.phong.ambient) == 0.2
+    # switching an effect on through a copy fills in its defaults
+    assert isinstance(dataclasses.replace(plain, ambient="lao").lao, LocalAmbientOcclusion)
 
 
 @pytest.mark.slow

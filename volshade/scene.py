@@ -104,8 +104,28 @@ MODULATION: dict[str, Callable[["Scene"], Array | None]] = {
 }
 
 
+# Effect parameters: field -> (its type, the stage that reads it, the stage's options that
+# use it, whether the type has defaults). A scene that uses an effect whose parameters are
+# left out gets the defaults; parameters given to a scene that never reads them are
+# refused, or a render would look as if they had no effect.
+_PARAMETERS: dict[str, tuple[type, str, tuple[str, ...], bool]] = {
+    "lao": (LocalAmbientOcclusion, "ambient", ("lao",), True),
+    "feature_ao": (FeatureAmbientOcclusion, "ambient", ("feature_ao",), False),
+    "obscurance": (ObscuranceParams, "ambient", ("obscurance",), True),
+    "saliency": (SaliencyModulation, "modulation", ("saliency",), True),
+    "phong": (Phong, "shading", ("phong", "obscurance"), True),
+    "importance": (Importance, "composition", ("importance",), True),
+}
+
+
 class Scene(eqx.Module):
     """A volume, its classification and the effects to render it with.
+
+    The parameters of an effect (``lao``, ``obscurance``, ``saliency``, ``phong``,
+    ``importance``) are used only by the effect: left out, they are the defaults of
+    their type when the scene names the effect and ``None`` when it does not; given to a
+    scene that does not name the effect (e.g. ``lao=`` with ``ambient="none"``), they are
+    refused rather than ignored.
 
     Attributes:
         volume: ``(D, H, W)`` intensities.
@@ -123,22 +143,27 @@ class Scene(eqx.Module):
             offset in voxels are leaves). It gets the transfer function's opacity
             as classified (per ``step0`` mm, the seeds' form) or, with
             ``opacity_correction``, corrected to a one-voxel step (the geometric
-            mean of ``spacing``), as :func:`~volshade.lao.lao` reads it then.
+            mean of ``spacing``), as :func:`~volshade.lao.lao` reads it then. For
+            ``ambient="lao"`` only.
         feature_ao: :class:`~volshade.feature_ao.FeatureAmbientOcclusion` parameters
             for ``ambient="feature_ao"`` (no default: the features are the scene's
             own); interval features select from ``transfer``, and the opacities are
             corrected as for ``lao``.
-        obscurance: :class:`~volshade.obscurance.ObscuranceParams`.
+        obscurance: :class:`~volshade.obscurance.ObscuranceParams`, for
+            ``ambient="obscurance"``.
         modulation: opacity modulation: ``"none"`` or ``"saliency"`` (obscurance
             saliency, with ``saliency``).
-        saliency: :class:`~volshade.saliency.SaliencyModulation` parameters.
+        saliency: :class:`~volshade.saliency.SaliencyModulation` parameters, for
+            ``modulation="saliency"``.
         shading: ``"none"`` (emission-absorption), ``"phong"`` (Blinn--Phong with
             the ambient term) or ``"obscurance"`` (eq. 5 of Ruiz et al.: all local
             lighting scaled by the ambient volume; two-sided, like ``"phong"``).
-        phong: Blinn--Phong coefficients.
+        phong: Blinn--Phong coefficients, for ``shading="phong"`` or
+            ``"obscurance"`` (which reads its diffuse and specular terms).
         composition: ``"standard"`` or ``"importance"`` (importance-aware, with
             ``importance`` and optional per-ray ``focus`` weights).
-        importance: :class:`~volshade.importance.Importance` weights.
+        importance: :class:`~volshade.importance.Importance` weights, for
+            ``composition="importance"``.
         focus: optional :class:`~volshade.importance.Focus` (focus plus context).
         background: ``(3,)`` RGB background colour.
         clip: optional clip shape (:mod:`volshade.clip`): the voxels inside it are
@@ -171,21 +196,26 @@ class Scene(eqx.Module):
     ambient: str = eqx.field(static=True, default="none")
     ambient_volume: Array | None = eqx.field(
         default=None, converter=lambda v: None if v is None else _as_array(v))
-    lao: LocalAmbientOcclusion = eqx.field(default_factory=LocalAmbientOcclusion)
+    lao: LocalAmbientOcclusion | None = None
     feature_ao: FeatureAmbientOcclusion | None = None
-    obscurance: ObscuranceParams = eqx.field(default_factory=ObscuranceParams)
+    obscurance: ObscuranceParams | None = None
     modulation: str = eqx.field(static=True, default="none")
-    saliency: SaliencyModulation = eqx.field(default_factory=SaliencyModulation)
+    saliency: SaliencyModulation | None = None
     shading: str = eqx.field(static=True, default="none")
-    phong: Phong = eqx.field(default_factory=Phong)
+    phong: Phong | None = None
     composition: str = eqx.field(static=True, default="standard")
-    importance: Importance = eqx.field(default_factory=Importance)
+    importance: Importance | None = None
     focus: Focus | None = None
     background: Float[Array, "3"] = eqx.field(
         converter=_checks.leaf("volshade.Scene", "background"), default=(0.0, 0.0, 0.0))
     clip: Clip | None = None
     # last: the fields before it keep their positions
     classification: str = eqx.field(static=True, default="post")
+
+    def __post_init__(self):
+        for name, (kind, stage, users, has_defaults) in _PARAMETERS.items():
+            if getattr(self, name) is None and getattr(self, stage) in users and has_defaults:
+                setattr(self, name, kind())
 
     def __check_init__(self):
         _checks.as_float_array(self.volume, "volume", _WHERE)
@@ -194,14 +224,6 @@ class Scene(eqx.Module):
             raise TypeError(f"{_WHERE}: `transfer` must be a volshade.TransferFunction, "
                             f"got {type(self.transfer).__name__}.")
         _checks.positive_float(self.step, "step", _WHERE)
-        # a number or a dict in their place would fail only inside the render, unnamed
-        for name, kind in (("lao", LocalAmbientOcclusion), ("obscurance", ObscuranceParams),
-                           ("saliency", SaliencyModulation), ("phong", Phong),
-                           ("importance", Importance), ("focus", Focus)):
-            value = getattr(self, name)
-            if not (isinstance(value, kind) or name == "focus" and value is None):
-                raise TypeError(f"{_WHERE}: `{name}` must be a volshade.{kind.__name__}, got "
-                                f"{type(value).__name__}.")
         _checks.option(self.ambient, AMBIENT, "ambient", _WHERE)
         _checks.option(self.modulation, MODULATION, "modulation", _WHERE)
         _checks.option(self.shading, SHADERS, "shading", _WHERE)
@@ -209,20 +231,28 @@ class Scene(eqx.Module):
         _checks.option(self.classification, _CLASSIFICATIONS, "classification", _WHERE)
         if self.ambient == "volume" and self.ambient_volume is None:
             raise ValueError(f"{_WHERE}: ambient='volume' needs `ambient_volume`.")
-        # given but never used: a render without them would look as if they had no effect
         if self.ambient != "volume" and self.ambient_volume is not None:
             raise ValueError(f"{_WHERE}: `ambient_volume` is used only with "
                              f"ambient='volume', got ambient={self.ambient!r}; set "
                              f"ambient='volume' or leave `ambient_volume` out.")
-        if self.ambient != "feature_ao" and self.feature_ao is not None:
-            raise ValueError(f"{_WHERE}: `feature_ao` is used only with "
-                             f"ambient='feature_ao', got ambient={self.ambient!r}; set "
-                             f"ambient='feature_ao' or leave `feature_ao` out.")
-        if self.ambient == "feature_ao" and not isinstance(self.feature_ao,
-                                                           FeatureAmbientOcclusion):
-            raise ValueError(f"{_WHERE}: ambient='feature_ao' needs `feature_ao=` a "
-                             f"volshade.FeatureAmbientOcclusion (its features), got "
-                             f"{type(self.feature_ao).__name__}.")
+        for name, (kind, stage, users, _) in _PARAMETERS.items():
+            value, option = getattr(self, name), getattr(self, stage)
+            if value is None:
+                if option in users:  # (only feature_ao has no defaults)
+                    raise ValueError(f"{_WHERE}: {stage}={option!r} needs `{name}=` a "
+                                     f"volshade.{kind.__name__}.")
+                continue
+            # a number or a dict in its place would fail only inside the render, unnamed
+            if not isinstance(value, kind):
+                raise TypeError(f"{_WHERE}: `{name}` must be a volshade.{kind.__name__}, "
+                                f"got {type(value).__name__}.")
+            if option not in users:
+                wanted = " or ".join(f"{stage}={u!r}" for u in users)
+                raise ValueError(f"{_WHERE}: `{name}` is used only with {wanted}, got "
+                                 f"{stage}={option!r}; set {wanted} or leave `{name}` out.")
+        if self.focus is not None and not isinstance(self.focus, Focus):
+            raise TypeError(f"{_WHERE}: `focus` must be a volshade.Focus, got "
+                            f"{type(self.focus).__name__}.")
         if self.focus is not None and self.composition != "importance":
             raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
         if self.clip is not None:
