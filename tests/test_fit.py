@@ -14,7 +14,13 @@ import optimistix as optx
 import pytest
 
 import volshade as vs
-from volshade.fit import _forward_by_reverse, _from_bounded, _leaf, _to_bounded
+from volshade.fit import (
+    _forward_by_reverse,
+    _from_bounded,
+    _leaf,
+    _parameters,
+    _to_bounded,
+)
 
 
 @pytest.mark.slow
@@ -67,6 +73,50 @@ def test_fit_to_several_views_with_rgb_targets_weights_and_an_array_parameter():
                    params={"background": (0.0, 1.0), "phong.ambient": None})
     assert optx.least_squares._cached._cache_size() == compiled
     np.testing.assert_allclose(float(again.values["phong.ambient"]), 0.5, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_fit_one_element_of_an_array_and_hold_the_others():
+    # one opacity control point and the red of one colour; the rest of both arrays is
+    # held at the start's values exactly
+    vol = vs.data.phantom("shells", shape=10).astype(jnp.float64)
+    base = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"))
+    truth = eqx.tree_at(lambda s: (s.transfer.opacities, s.transfer.colors), base,
+                        (base.transfer.opacities.at[5].set(0.3),
+                         base.transfer.colors.at[5, 0].set(0.7)))
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))
+    result = vs.fit(base, cam, vs.render(truth, cam),
+                    params={"transfer.opacities.5": (0.0, 1.0),
+                            "transfer.colors.5.0": (0.0, 1.0)})
+    assert result.result == optx.RESULTS.successful
+    np.testing.assert_allclose(float(result.values["transfer.opacities.5"]), 0.3, atol=1e-6)
+    np.testing.assert_allclose(float(result.values["transfer.colors.5.0"]), 0.7, atol=1e-6)
+    fitted = result.scene.transfer
+    assert result.values["transfer.opacities.5"].shape == ()
+    np.testing.assert_array_equal(np.delete(fitted.opacities, 5),
+                                  np.delete(base.transfer.opacities, 5))
+    np.testing.assert_array_equal(np.asarray(fitted.colors).ravel()[np.arange(27) != 15],
+                                  np.asarray(base.transfer.colors).ravel()[np.arange(27) != 15])
+    assert float(result.loss) < 1e-16 < float(result.initial_loss)
+
+
+@pytest.mark.parametrize("params, match", [
+    (["transfer.opacities.9"], r"'9' is not an index into 'transfer.opacities', an array "
+                               r"of shape \(9,\)"),
+    (["transfer.opacities.1.0"], r"'1.0' is not an index"),
+    (["transfer.colors.a"], r"'a' is not an index"),
+    (["lao.radius.0"], r"'0' is not an index into 'lao.radius', an array of shape \(\)"),
+    (["transfer.opacities", "transfer.opacities.2"], r"'transfer.opacities' and "
+                                                      r"'transfer.opacities.2', which overlap"),
+    (["transfer.colors.2.1", "transfer.colors.2"], "which overlap"),
+])
+def test_array_elements_out_of_range_or_named_twice_are_refused(params, match):
+    scene = vs.Scene(volume=jnp.zeros((6, 6, 6)), transfer=vs.transfer.preset("shells"),
+                     ambient="lao")
+    with pytest.raises(ValueError, match=match):
+        vs.fit(scene, vs.Camera.orbit(image_shape=(4, 4)), jnp.zeros((4, 4, 4)), params=params)
+    # two elements of one array are two parameters, not an overlap
+    _parameters(scene, ["transfer.colors.2.1", "transfer.colors.2.0", "transfer.colors.3"])
 
 
 @pytest.mark.slow

@@ -1,9 +1,9 @@
 r"""Fitting a scene's continuous parameters to target images with optimistix.
 
 :func:`fit` names the parameters to fit by their path in the :class:`~volshade.scene.Scene`
-(``"lao.radius"``, ``"importance.intensity"``, ``"transfer.opacities"``), renders the
-scene from one or more cameras, and minimises the mean squared difference to the
-target images,
+(``"lao.radius"``, ``"importance.intensity"``, ``"transfer.opacities"``, or one element
+of an array, ``"transfer.opacities.3"``), renders the scene from one or more cameras,
+and minimises the mean squared difference to the target images,
 
 $$ \mathcal{L}(\theta) = \frac{\sum_{v,p,c} w_{v,p,c}
     \big(I_v(\theta)_{p,c} - T_{v,p,c}\big)^2}{\sum_{v,p,c} w_{v,p,c}} ,$$
@@ -34,9 +34,10 @@ supported.
 """
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -115,24 +116,57 @@ def _child(node: Any, part: str, path: str) -> Any:
 
 
 def _at(tree: Any, path: str) -> Any:
-    """The node at a path already checked by :func:`_leaf` (for ``eqx.tree_at``)."""
+    """The node at a field path already checked by :func:`_parameter` (for
+    ``eqx.tree_at``)."""
     for part in path.split("."):
         tree = tree[int(part)] if part.isdigit() else getattr(tree, part)
     return tree
 
 
-def _leaf(scene: Scene, path: str) -> Array | float:
-    """The leaf at ``path``: a floating-point array, or a number set with ``eqx.tree_at``."""
-    node = scene
-    for part in _path_parts(path):
-        node = _child(node, part, path)
+class _Parameter(NamedTuple):
+    """Where a parameter lies: the path of its scene leaf and, for one element or slice
+    of an array leaf, the index into it (``()``: the whole leaf)."""
+
+    field: str
+    index: tuple[int, ...]
+
+
+def _parameter(scene: Scene, path: str) -> tuple[_Parameter, Array | float]:
+    """The parameter at ``path`` and its value: a floating-point array leaf (or a number
+    set with ``eqx.tree_at``), or the part of one that the numbers after it index."""
+    parts, node, k = _path_parts(path), scene, 0
+    while k < len(parts) and not eqx.is_array(node):
+        node = _child(node, parts[k], path)
+        k += 1
     if not (eqx.is_inexact_array(node)
             or isinstance(node, float | int) and not isinstance(node, bool)):
         what = (f"an array of dtype {node.dtype}" if eqx.is_array(node)
                 else f"a {type(node).__name__}; name one of its array fields instead")
         raise ValueError(f"{_WHERE}: {path!r} must name a floating-point array leaf of the "
                          f"scene, got {what}.")
-    return node
+    field, index = ".".join(parts[:k]), parts[k:]
+    if len(index) > jnp.ndim(node) or not all(
+            p.isdigit() and int(p) < n for p, n in zip(index, jnp.shape(node), strict=False)):
+        raise ValueError(f"{_WHERE}: {path!r}: {'.'.join(index)!r} is not an index into "
+                         f"{field!r}, an array of shape {jnp.shape(node)}; give one number "
+                         f"from 0 to the length minus 1 per axis (e.g. {field + '.0'!r}).")
+    index = tuple(int(p) for p in index)
+    return _Parameter(field, index), node[index] if index else node
+
+
+def _leaf(scene: Scene, path: str) -> Array | float:
+    """The value of the parameter at ``path`` (see :func:`_parameter`)."""
+    return _parameter(scene, path)[1]
+
+
+def _placed(scene: Scene, where: Sequence[_Parameter], values: Sequence[Array]) -> Scene:
+    """``scene`` with each parameter's value in place: a whole leaf replaced, an element
+    set in its array (several elements of one array are set in turn)."""
+    leaves: dict[str, Any] = {}
+    for (field, index), value in zip(where, values, strict=True):
+        leaves[field] = (jnp.asarray(leaves.get(field, _at(scene, field))).at[index].set(value)
+                         if index else value)
+    return eqx.tree_at(lambda s: [_at(s, f) for f in leaves], scene, list(leaves.values()))
 
 
 def _bounds(path: str, value: Any) -> Bounds:
@@ -206,8 +240,9 @@ def _from_bounded(x: Array, bounds: Bounds, path: str) -> Array:
     return u
 
 
-def _parameters(scene: Scene, params: Any) -> tuple[dict[str, Bounds], list[Any]]:
-    """The parameters' bounds by path, and their leaves in the scene, checked."""
+def _parameters(scene: Scene, params: Any
+                ) -> tuple[dict[str, Bounds], list[_Parameter], list[Any]]:
+    """The parameters' bounds by path, where they lie and their values, checked."""
     if isinstance(params, str):
         raise TypeError(f"{_WHERE}: `params` must be a sequence of paths or a mapping from "
                         f"paths to bounds, got the single string {params!r}; write "
@@ -227,7 +262,13 @@ def _parameters(scene: Scene, params: Any) -> tuple[dict[str, Bounds], list[Any]
     if not named:
         raise ValueError(f"{_WHERE}: `params` is empty; name at least one parameter, e.g. "
                          f"params=('lao.radius',).")
-    return named, [_leaf(scene, path) for path in named]
+    where, values = zip(*(_parameter(scene, path) for path in named), strict=True)
+    for (a, pa), (b, pb) in itertools.combinations(zip(named, where, strict=True), 2):
+        short = min(len(pa.index), len(pb.index))
+        if pa.field == pb.field and pa.index[:short] == pb.index[:short]:
+            raise ValueError(f"{_WHERE}: `params` names {a!r} and {b!r}, which overlap; "
+                             f"name each element once.")
+    return named, list(where), list(values)
 
 
 def _one_per_camera(value: Any, name: str, count: int, single: bool, *, what: str,
@@ -332,14 +373,13 @@ class _Problem(eqx.Module):
     cameras: tuple[Camera, ...]
     targets: tuple[Array, ...]
     weights: tuple[Array | None, ...]
-    paths: tuple[str, ...] = eqx.field(static=True)
+    where: tuple[_Parameter, ...] = eqx.field(static=True)
     bounds: tuple[Bounds, ...] = eqx.field(static=True)
 
     def place(self, u: list[Array]) -> tuple[Scene, list[Array]]:
         """The scene with the parameters' values for ``u``, and those values."""
         values = [_to_bounded(ui, b) for ui, b in zip(u, self.bounds, strict=True)]
-        return eqx.tree_at(lambda s: [_at(s, p) for p in self.paths], self.scene,
-                           values), values
+        return _placed(self.scene, self.where, values), values
 
     def residuals(self, u: list[Array]) -> list[Array]:
         fitted, _ = self.place(u)
@@ -445,7 +485,10 @@ def fit(
             each camera.
         params: paths of the parameters to fit (``"lao.radius"``,
             ``"importance.intensity"``, ``"transfer.opacities"``, ``"phong.ambient"``,
-            ``"feature_ao.lao.radius"``; a number indexes a sequence), as a sequence,
+            ``"feature_ao.lao.radius"``; a number indexes a sequence, and numbers after
+            an array leaf pick part of it, one per axis: ``"transfer.opacities.3"``
+            fits one control point and holds the others, ``"transfer.colors.2"`` one
+            RGB colour, ``"transfer.colors.2.0"`` its red), as a sequence,
             or as a mapping from path to bounds ``(low, high)`` (either end ``None``
             for an open one; ``None`` for no bounds). Array parameters are
             fitted element by element, each element within the bounds. A parameter
@@ -472,12 +515,12 @@ def fit(
 
     Raises:
         ValueError / TypeError: a path that does not name a floating-point array
-            leaf of the scene (the message lists the valid fields), a static or
-            repeated parameter, one that gets no gradient (``lao.directions``, an
-            interval feature's ends, a clip's pose and sizes, the saliency threshold,
-            a circular or screen-door focus's centre and radius), bad bounds or an
-            initial value outside them, targets or weights that do not match the
-            cameras, a solver of another kind.
+            leaf of the scene or part of one (the message lists the valid fields),
+            a static parameter, one named twice or overlapping another, one that gets
+            no gradient (``lao.directions``, an interval feature's ends, a clip's pose
+            and sizes, the saliency threshold, a circular or screen-door focus's centre
+            and radius), bad bounds or an initial value outside them, targets or
+            weights that do not match the cameras, a solver of another kind.
 
     Example:
         >>> vol = vs.data.phantom("shells", shape=12)
@@ -491,7 +534,7 @@ def fit(
         >>> round(float(result.values["importance.intensity"]), 3)
         2.0
     """
-    named, leaves = _parameters(scene, params)
+    named, where, leaves = _parameters(scene, params)
     views = _views(camera, target, weights)
     max_steps = _checks.positive_int(max_steps, "max_steps", _WHERE)
     _checks.flag(throw, "throw", _WHERE)
@@ -507,11 +550,11 @@ def fit(
     for leaf, path in zip(leaves, named, strict=True):
         x = _checks.float_leaf(leaf, path, _WHERE)
         initial.append(jnp.array(x, dtype=x.dtype))
-    problem = _Problem(scene=eqx.tree_at(lambda s: [_at(s, p) for p in paths], scene, initial),
+    problem = _Problem(scene=_placed(scene, where, initial),
                        cameras=tuple(c for c, _, _ in views),
                        targets=tuple(t for _, t, _ in views),
                        weights=tuple(w for _, _, w in views),
-                       paths=paths, bounds=tuple(named.values()))
+                       where=tuple(where), bounds=tuple(named.values()))
     u0 = [_from_bounded(x, named[p], p) for x, p in zip(initial, paths, strict=True)]
     initial_loss = _measured_loss(problem, u0)
     solver = _default_solver(initial_loss.dtype) if solver is None else solver
