@@ -105,10 +105,13 @@ def test_fit_one_element_of_an_array_and_hold_the_others():
                                r"of shape \(9,\)"),
     (["transfer.opacities.1.0"], r"'1.0' is not an index"),
     (["transfer.colors.a"], r"'a' is not an index"),
-    (["lao.radius.0"], r"'0' is not an index into 'lao.radius', an array of shape \(\)"),
     (["transfer.opacities", "transfer.opacities.2"], r"'transfer.opacities' and "
                                                       r"'transfer.opacities.2', which overlap"),
     (["transfer.colors.2.1", "transfer.colors.2"], "which overlap"),
+    (["lao.radius.0"], r"'lao.radius' is a scalar; name it without an index"),
+    (["transfer.opacities.\u00b2"], r"'\u00b2' is not an index"),
+    (["phong.diffuse"], r"does not use `phong` \(shading='none'\); make it with "
+                        r"shading='phong' or shading='obscurance'"),
 ])
 def test_array_elements_out_of_range_or_named_twice_are_refused(params, match):
     scene = vs.Scene(volume=jnp.zeros((6, 6, 6)), transfer=vs.transfer.preset("shells"),
@@ -117,6 +120,15 @@ def test_array_elements_out_of_range_or_named_twice_are_refused(params, match):
         vs.fit(scene, vs.Camera.orbit(image_shape=(4, 4)), jnp.zeros((4, 4, 4)), params=params)
     # two elements of one array are two parameters, not an overlap
     _parameters(scene, ["transfer.colors.2.1", "transfer.colors.2.0", "transfer.colors.3"])
+
+
+def test_one_sequence_entry_spelled_two_ways_is_an_overlap():
+    features = vs.FeatureAmbientOcclusion([vs.transfer.preset("shells")])
+    scene = vs.Scene(volume=jnp.zeros((6, 6, 6)), transfer=vs.transfer.preset("shells"),
+                     ambient="feature_ao", feature_ao=features)
+    with pytest.raises(ValueError, match="which overlap"):
+        _parameters(scene, ["feature_ao.features.0.opacities.5",
+                            "feature_ao.features.00.opacities"])
 
 
 @pytest.mark.slow

@@ -31,7 +31,10 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
                vs.Phong(ambient=1, diffuse=1, specular=0, shininess=8),
                vs.Camera(eye=[0, 3, 0], target=[0, 0, 0], up=[1, 0, 0], fov=30, width=1),
                vs.Focus(center=(0, 0), radius=1, inside=2, outside=0),
-               vs.Scene(volume=VOL, transfer=TF, background=(0, 0, 0))]
+               # with every effect whose defaults a scene fills in
+               vs.Scene(volume=VOL, transfer=TF, background=(0, 0, 0), ambient="lao",
+                        modulation="saliency", shading="phong", composition="importance"),
+               vs.Scene(volume=VOL, transfer=TF, ambient="obscurance")]
     for module in modules:
         for leaf in jax.tree_util.tree_leaves(eqx.filter(module, eqx.is_array)):
             assert jnp.issubdtype(leaf.dtype, jnp.floating), (type(module).__name__, leaf)

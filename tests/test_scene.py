@@ -211,8 +211,18 @@ def test_effect_parameters_default_when_used_and_are_refused_when_not():
     # given explicitly and used: kept, not replaced by the defaults
     lit = Scene(volume=_volume(), transfer=tf, shading="phong", phong=Phong(ambient=0.2))
     assert float(lit.phong.ambient) == 0.2
-    # switching an effect on through a copy fills in its defaults
-    assert isinstance(dataclasses.replace(plain, ambient="lao").lao, LocalAmbientOcclusion)
+    # switching an effect on through a copy fills in its defaults, and switching it off
+    # drops them; parameters the user gave (or changed) are refused instead
+    on = dataclasses.replace(plain, ambient="lao")
+    assert isinstance(on.lao, LocalAmbientOcclusion)
+    assert dataclasses.replace(on, ambient="none").lao is None
+    assert dataclasses.replace(used, ambient="obscurance").lao is None
+    for given in (dataclasses.replace(lit, shading="obscurance"),
+                  dataclasses.replace(used, phong=Phong(ambient=0.2)),
+                  eqx.tree_at(lambda s: s.phong.ambient, used, 0.3)):
+        with pytest.raises(ValueError, match=r"`phong` is used only .* pass `phong=None` too"):
+            dataclasses.replace(given, shading="none")
+    assert dataclasses.replace(lit, shading="none", phong=None).phong is None
 
 
 @pytest.mark.slow

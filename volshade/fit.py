@@ -50,7 +50,7 @@ from jax.custom_derivatives import SymbolicZero
 from . import _checks
 from ._types import Array, ArrayLike, Float
 from .camera import Camera
-from .scene import Scene, _check_cameras, render
+from .scene import _PARAMETERS, Scene, _check_cameras, render
 
 _WHERE = "volshade.fit"
 
@@ -87,6 +87,11 @@ def _path_parts(path: Any) -> list[str]:
     return path.split(".")
 
 
+def _is_index(part: str) -> bool:
+    """Whether a path part is a number (ASCII digits: ``str.isdigit`` takes '²')."""
+    return part.isascii() and part.isdigit()
+
+
 def _child(node: Any, part: str, path: str) -> Any:
     """One step of a path: a Module field or a sequence index, refused with the valid
     names when it does not exist and when it is static (it cannot be fitted)."""
@@ -105,8 +110,15 @@ def _child(node: Any, part: str, path: str) -> Any:
         if why is not None:
             raise ValueError(f"{_WHERE}: {path!r} gets no gradient ({why}), so a fit cannot "
                              f"move it; fit a differentiable parameter.")
-        return getattr(node, part)
-    if isinstance(node, list | tuple) and part.isdigit() and int(part) < len(node):
+        value = getattr(node, part)
+        if value is None and isinstance(node, Scene) and part in _PARAMETERS:
+            _, stage, users, _ = _PARAMETERS[part]
+            wanted = " or ".join(f"{stage}={u!r}" for u in users)
+            raise ValueError(f"{_WHERE}: {path!r}: the scene does not use `{part}` "
+                             f"({stage}={getattr(node, stage)!r}); make it with {wanted} "
+                             f"to fit it.")
+        return value
+    if isinstance(node, list | tuple) and _is_index(part) and int(part) < len(node):
         return node[int(part)]
     if node is None:
         raise ValueError(f"{_WHERE}: {path!r}: cannot take {part!r} of None: the scene "
@@ -119,7 +131,7 @@ def _at(tree: Any, path: str) -> Any:
     """The node at a field path already checked by :func:`_parameter` (for
     ``eqx.tree_at``)."""
     for part in path.split("."):
-        tree = tree[int(part)] if part.isdigit() else getattr(tree, part)
+        tree = tree[int(part)] if _is_index(part) else getattr(tree, part)
     return tree
 
 
@@ -144,9 +156,14 @@ def _parameter(scene: Scene, path: str) -> tuple[_Parameter, Array | float]:
                 else f"a {type(node).__name__}; name one of its array fields instead")
         raise ValueError(f"{_WHERE}: {path!r} must name a floating-point array leaf of the "
                          f"scene, got {what}.")
-    field, index = ".".join(parts[:k]), parts[k:]
+    # one spelling per leaf ('features.00' is 'features.0'), so overlaps are found
+    field = ".".join(str(int(p)) if _is_index(p) else p for p in parts[:k])
+    index = parts[k:]
+    if index and jnp.ndim(node) == 0:
+        raise ValueError(f"{_WHERE}: {path!r}: {field!r} is a scalar; name it without "
+                         f"an index.")
     if len(index) > jnp.ndim(node) or not all(
-            p.isdigit() and int(p) < n for p, n in zip(index, jnp.shape(node), strict=False)):
+            _is_index(p) and int(p) < n for p, n in zip(index, jnp.shape(node), strict=False)):
         raise ValueError(f"{_WHERE}: {path!r}: {'.'.join(index)!r} is not an index into "
                          f"{field!r}, an array of shape {jnp.shape(node)}; give one number "
                          f"from 0 to the length minus 1 per axis (e.g. {field + '.0'!r}).")

@@ -118,6 +118,15 @@ _PARAMETERS: dict[str, tuple[type, str, tuple[str, ...], bool]] = {
 }
 
 
+def _still_default(value: eqx.Module, kind: type) -> bool:
+    """Whether effect parameters equal their type's defaults (traced values are taken to
+    be: they come from a scene that held the defaults, e.g. a copy under ``jit``)."""
+    try:
+        return bool(eqx.tree_equal(value, kind()))
+    except jax.errors.ConcretizationTypeError:
+        return True
+
+
 class Scene(eqx.Module):
     """A volume, its classification and the effects to render it with.
 
@@ -125,7 +134,10 @@ class Scene(eqx.Module):
     ``importance``) are used only by the effect: left out, they are the defaults of
     their type when the scene names the effect and ``None`` when it does not; given to a
     scene that does not name the effect (e.g. ``lao=`` with ``ambient="none"``), they are
-    refused rather than ignored.
+    refused rather than ignored. A copy that turns an effect off
+    (``dataclasses.replace(scene, ambient="none")``) drops the defaults the scene filled
+    in, and refuses parameters that were given or changed unless they are dropped too
+    (``lao=None``).
 
     Attributes:
         volume: ``(D, H, W)`` intensities.
@@ -211,11 +223,25 @@ class Scene(eqx.Module):
     clip: Clip | None = None
     # last: the fields before it keep their positions
     classification: str = eqx.field(static=True, default="post")
+    # the effect parameters __post_init__ filled in (not given): a copy that turns their
+    # effect off (dataclasses.replace) drops them, where given ones are refused
+    _defaulted: tuple[str, ...] = eqx.field(static=True, default=(), repr=False)
 
     def __post_init__(self):
+        defaulted = set(self._defaulted)
         for name, (kind, stage, users, has_defaults) in _PARAMETERS.items():
-            if getattr(self, name) is None and getattr(self, stage) in users and has_defaults:
+            if not has_defaults:
+                continue
+            value, used = getattr(self, name), getattr(self, stage) in users
+            if value is None and used:
                 setattr(self, name, kind())
+                defaulted.add(name)
+            elif value is None or not _still_default(value, kind):
+                defaulted.discard(name)  # (a value put in its place is the user's)
+            elif name in defaulted and not used:
+                setattr(self, name, None)
+                defaulted.discard(name)
+        self._defaulted = tuple(sorted(defaulted))
 
     def __check_init__(self):
         _checks.as_float_array(self.volume, "volume", _WHERE)
@@ -249,7 +275,9 @@ class Scene(eqx.Module):
             if option not in users:
                 wanted = " or ".join(f"{stage}={u!r}" for u in users)
                 raise ValueError(f"{_WHERE}: `{name}` is used only with {wanted}, got "
-                                 f"{stage}={option!r}; set {wanted} or leave `{name}` out.")
+                                 f"{stage}={option!r}; set {wanted} or leave `{name}` out "
+                                 f"(a copy with dataclasses.replace keeps it: pass "
+                                 f"`{name}=None` too).")
         if self.focus is not None and not isinstance(self.focus, Focus):
             raise TypeError(f"{_WHERE}: `focus` must be a volshade.Focus, got "
                             f"{type(self.focus).__name__}.")
