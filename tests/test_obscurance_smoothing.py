@@ -51,3 +51,49 @@ def test_smoothing_accepts_numpy_numbers_and_blurs_integer_volumes_as_floats():
     assert jnp.issubdtype(blurred.dtype, jnp.floating)
     np.testing.assert_allclose(blurred, _gaussian_smooth(ints.astype(blurred.dtype), 1.0))
     assert float(jnp.max(blurred)) > 100
+
+
+def _corner_transfer(empty_rgb):
+    """The corner phantom with ``empty_rgb`` where the opacity is 0: the air and the wall
+    of value 0.5 (its others, 0.75 and 1, are opaque)."""
+    return vs.TransferFunction.from_points([(0.0, *empty_rgb, 0.0), (0.6, *empty_rgb, 0.0),
+                                            (0.7, 0.1, 0.8, 0.1, 1.0), (1.0, 1, 1, 1, 1.0)])
+
+
+@pytest.mark.parametrize("kind", [dict(smoothing=1.0), dict(density="intensity"),
+                                  dict(smoothing=1.0, density="intensity")])
+def test_bleeding_ignores_the_colour_of_what_has_no_opacity(kind):
+    # smoothing, or intensity as the density, lets voxels without opacity occlude; the
+    # colour a transfer function gives them is invisible and must not tint
+    vol = vs.data.phantom("corner", shape=14)
+    params = vs.ObscuranceParams(d_max=6.0, level=0, color_bleeding=True, **kind)
+    black, white = (params(vol, _corner_transfer(c)) for c in ((0, 0, 0), (1, 1, 1)))
+    np.testing.assert_array_equal(black, white)
+    # they do occlude: the same pipeline with their black reflectance is darker
+    density = _corner_transfer((0, 0, 0)).opacity(vol) if "density" not in kind else vol
+    if "smoothing" in kind:
+        density = _gaussian_smooth(density, 1.0)
+    dark = vs.obscurance(density, directions=icosphere_points(0), d_max=6.0,
+                         colors=_corner_transfer((0, 0, 0)).color(vol))
+    assert float(jnp.max(black - dark)) > 0.05
+
+
+def test_smoothed_bleeding_takes_the_opacity_weighted_mean_colour():
+    vol = vs.data.phantom("corner", shape=14)
+    tf = vs.transfer.preset("corner")
+    params = vs.ObscuranceParams(d_max=6.0, level=0, color_bleeding=True, smoothing=1.0)
+    alpha, colors = np.asarray(tf.opacity(vol)), np.asarray(tf.color(vol))
+    blur = lambda x: gaussian(x, sigma=1.0, mode="nearest", truncate=4.0,  # noqa: E731
+                              preserve_range=True)
+    weight = blur(alpha)
+    mean = np.stack([blur(alpha * colors[..., c]) for c in range(3)], axis=-1)
+    reflect = np.where(weight[..., None] > 0, mean / np.where(weight > 0, weight, 1)[..., None],
+                       1.0)
+    # (the same blur of the density feeds the search, as above)
+    want = vs.obscurance(_gaussian_smooth(tf.opacity(vol), 1.0),
+                         directions=icosphere_points(0), d_max=6.0, colors=jnp.asarray(reflect))
+    np.testing.assert_allclose(params(vol, tf), want, atol=1e-6)  # (float32 phantom)
+    # the gradient reaches the wall colours and opacities through the weighted mean
+    grads = jax.grad(lambda t: jnp.sum(params(vol, t)))(tf)
+    assert np.all(np.isfinite(grads.colors)) and np.any(grads.colors != 0)
+    assert np.all(np.isfinite(grads.opacities)) and np.any(grads.opacities != 0)

@@ -825,7 +825,7 @@ def _static_number(value):
 
 
 class ObscuranceParams(eqx.Module):
-    """Obscurance settings for a :class:`volshade.Scene` (``ambient="obscurance"``).
+    r"""Obscurance settings for a :class:`volshade.Scene` (``ambient="obscurance"``).
 
     ``d_max``, ``low`` and ``high`` are differentiable leaves; the rest is static.
 
@@ -844,7 +844,13 @@ class ObscuranceParams(eqx.Module):
             0.6/0.7).
         rho: name of a rho function (:data:`RHO_FUNCTIONS`).
         level: icosphere level of the directions: 0, 1, 2 for 12, 42, 162.
-        color_bleeding: tint by the occluders' transfer-function colours (eq. 3).
+        color_bleeding: tint by the occluders' transfer-function colours (eq. 3): a
+            voxel's own colour or, with ``smoothing``, the opacity-weighted mean colour
+            of the neighbourhood its smoothed density comes from,
+            $G * (\alpha c) / G * \alpha$. A voxel without opacity (an occluder by
+            ``density="intensity"`` or through smoothing) tints like the ambient white:
+            it reflects nothing of its own, and the colour a transfer function gives
+            invisible values (black, in every preset) would darken its neighbours.
         density: what occludes: ``"opacity"`` (transfer-function opacity) or
             ``"intensity"`` (raw values, transfer-function independent).
         smoothing: standard deviation in voxels of a Gaussian applied to the density
@@ -890,10 +896,21 @@ class ObscuranceParams(eqx.Module):
     def __call__(self, volume: Float[Array, "D H W"], transfer) -> Array:
         """Thresholded obscurance of ``volume`` classified by ``transfer``: ``(D, H, W)``,
         or ``(D, H, W, 3)`` with colour bleeding."""
-        density = transfer.opacity(volume) if self.density == "opacity" else volume
+        alpha = transfer.opacity(volume)
+        density = alpha if self.density == "opacity" else volume
         if self.smoothing > 0:
             density = _gaussian_smooth(density, self.smoothing)
-        colors = transfer.color(volume) if self.color_bleeding else None
+        colors = self._reflectances(alpha, transfer.color(volume)) if self.color_bleeding else None
         obs = obscurance(density, directions=icosphere_points(self.level), d_max=self.d_max,
                          rho=self.rho, colors=colors)
         return threshold(obs, self.low, self.high)
+
+    def _reflectances(self, alpha: Array, colors: Array) -> Array:
+        """Each voxel's diffuse colour $R(q)$ as an occluder (see ``color_bleeding``)."""
+        weight = alpha
+        if self.smoothing > 0:
+            weight = _gaussian_smooth(alpha, self.smoothing)
+            weighted = jnp.stack([_gaussian_smooth(alpha * colors[..., c], self.smoothing)
+                                  for c in range(3)], axis=-1)
+            colors = safe_div(weighted, weight[..., None])
+        return jnp.where(weight[..., None] > 0, colors, jnp.ones_like(colors))
