@@ -527,3 +527,33 @@ def test_state_is_a_pytree_usable_by_eqx():
     for bgi in (-jnp.inf, 0.0, 5.0):
         rgba = importance_finish(s, bg, jnp.asarray(bgi, jnp.float32))
         np.testing.assert_allclose(rgba, np.tile([0.25, 0.5, 0.75, 0.0], (3, 1)), atol=1e-7)
+
+
+def test_backgrounds_broadcast_to_the_rays():
+    c, a, imp = random_rays(6, 5, seed=3)
+    c, a, imp = (jnp.asarray(x).reshape(2, 3, *x.shape[1:]) for x in (c, a, imp))
+    colour = jnp.array([0.2, 0.3, 0.4])
+    for importance, bgi in ((None, None), (imp, jnp.array([[0.5], [-1.0]]))):
+        want = composite(c, a, importance=importance,
+                         background=jnp.broadcast_to(colour, (2, 3, 3)),
+                         background_importance=None if bgi is None
+                         else jnp.broadcast_to(bgi, (2, 3)))
+        got = composite(c, a, importance=importance, background=colour.reshape(1, 1, 3),
+                        background_importance=bgi)
+        np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match=r"`background` must be an RGB colour that broadcasts "
+                                         r"to the rays, \(\.\.\., 3\) = \(2, 3, 3\), got \(4, 3\)"):
+        composite(c, a, background=jnp.zeros((4, 3)))
+    with pytest.raises(ValueError, match=r"`background_importance` must broadcast to the rays"):
+        composite(c, a, importance=imp, background_importance=jnp.zeros(2))
+
+
+def test_an_eager_call_compiles_once():
+    from volshade.composition import _composite
+
+    c, a, imp = random_rays(4, 6, seed=4)
+    for importance in (None, imp):
+        composite(c, a, importance=importance)
+        compiled = _composite._cache_size()
+        composite(c + 0.0, a, importance=importance)  # new values, same shapes
+        assert _composite._cache_size() == compiled

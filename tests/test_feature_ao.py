@@ -421,3 +421,20 @@ def test_neighbourhood_merge_falls_back_below_the_dtypes_epsilon():
     np.testing.assert_array_equal(np.asarray(got)[1, 1, 1], np.float32(0.4))
     np.testing.assert_allclose(np.asarray(got), merge_reference(ao, opacities, "neighbourhood"),
                                rtol=0, atol=1e-7)
+
+
+def test_an_eager_call_compiles_once():
+    # the per-feature loop is compiled once per structure, not traced again per call
+    from volshade.feature_ao import _merged
+
+    vol, tf = vs.data.phantom("shells", shape=12), vs.transfer.preset("shells")
+    features = [vs.IntervalFeature(0.2, 0.4), vs.IntervalFeature(0.5, 1.0)]
+    module = vs.FeatureAmbientOcclusion(features, lao=vs.LocalAmbientOcclusion(
+        3.0, directions=4, samples=4))
+    for call in (lambda v: vs.feature_ao(v, features=features, base=tf, directions=4,
+                                         radius=3.0, samples=4),
+                 lambda v: module(v, base=tf)):
+        first = call(vol)
+        compiled = _merged._cached._cache_size()
+        np.testing.assert_array_equal(call(vol + 0.0), first)
+        assert _merged._cached._cache_size() == compiled

@@ -573,11 +573,13 @@ def composite(
         alphas: ``(..., S)`` opacities in [0, 1].
         importance: optional ``(..., S)`` sample importances $I_s$ (any real;
             only differences matter).
-        background: optional ``(3,)`` or ``(..., 3)`` colour blended under the
-            volume; without it the result is premultiplied RGBA over black.
-        background_importance: optional scalar or ``(...)`` importance of the
-            background layer (sec. IV-C; needs ``importance``). Default: none
-            ($-\infty$), the background never fades the volume.
+        background: optional RGB colour blended under the volume, ``(3,)`` or any
+            shape that broadcasts to ``(..., 3)``; without it the result is
+            premultiplied RGBA over black.
+        background_importance: optional importance of the background layer, a scalar
+            or any shape that broadcasts to ``(...)`` (sec. IV-C; needs
+            ``importance``). Default: none ($-\infty$), the background never fades
+            the volume.
         unroll: samples per iteration of the ``lax.scan`` (static; larger values
             trade compile time for less loop overhead on GPUs; on CPUs 1 is fastest).
 
@@ -627,27 +629,45 @@ def composite(
     else:
         bg = _checks.finite(_checks.as_float_array(background, "background", where).astype(dtype),
                             "background", where)
-        if bg.shape[-1:] != (3,) or (bg.ndim > 1 and bg.shape[:-1] != batch):
-            raise ValueError(f"{where}: `background` must be (3,) or (..., 3) = {(*batch, 3)}, "
-                             f"got {bg.shape}.")
-
+        if bg.shape[-1:] != (3,) or not _broadcasts(bg.shape, (*batch, 3)):
+            raise ValueError(f"{where}: `background` must be an RGB colour that broadcasts to "
+                             f"the rays, (..., 3) = {(*batch, 3)}, got {bg.shape}.")
+        bg = jnp.broadcast_to(bg, (*batch, 3))
     if importance is None:
-        comp = COMPOSITORS["standard"]
-        xs = _samples(colors, alphas)
-        state, _ = jax.lax.scan(lambda s, x: (comp.step(s, x), None), comp.init(batch, dtype),
-                                xs, unroll=unroll)
-        return comp.finish(state, bg)
+        return _composite(colors, alphas, None, bg, None, unroll=unroll)
     importance = _checks.finite(importance.astype(dtype), "importance", where)
     if background_importance is None:
         bg_imp = jnp.full(batch, -jnp.inf, dtype)
     else:
         bg_imp = _checks.as_float_array(background_importance, "background_importance", where)
-        if bg_imp.ndim > 0 and bg_imp.shape != batch:
-            raise ValueError(f"{where}: `background_importance` must be a scalar or "
+        if not _broadcasts(bg_imp.shape, batch):
+            raise ValueError(f"{where}: `background_importance` must broadcast to the rays, "
                              f"(...) = {batch}, got {bg_imp.shape}.")
         bg_imp = _checks.refuse(
             bg_imp.astype(dtype), [(jnp.any(jnp.isnan(bg_imp) | (bg_imp == jnp.inf)),
                                     "`background_importance` must be finite or -inf (no "
                                     "background importance), got NaN or +inf.")], where)
+        bg_imp = jnp.broadcast_to(bg_imp, batch)
+    return _composite(colors, alphas, importance, bg, bg_imp, unroll=unroll)
+
+
+def _broadcasts(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
+    """Whether ``shape`` broadcasts to ``target`` (without growing it)."""
+    try:
+        return jnp.broadcast_shapes(shape, target) == target
+    except ValueError:
+        return False
+
+
+@functools.partial(jax.jit, static_argnames=("unroll",))
+def _composite(colors, alphas, importance, bg, bg_imp, *, unroll: int) -> Array:
+    """:func:`composite` of checked arrays, compiled: an eager call would otherwise trace
+    and compile its scan again each time."""
+    batch, dtype = alphas.shape[:-1], alphas.dtype
+    if importance is None:
+        comp = COMPOSITORS["standard"]
+        state, _ = jax.lax.scan(lambda s, x: (comp.step(s, x), None), comp.init(batch, dtype),
+                                _samples(colors, alphas), unroll=unroll)
+        return comp.finish(state, bg)
     state = _importance_scan(importance_init(batch, dtype), colors, alphas, importance, unroll)
     return importance_finish(state, bg, bg_imp)

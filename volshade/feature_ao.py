@@ -78,7 +78,7 @@ from jax import lax
 
 from . import _checks
 from ._types import Array, ArrayLike, Float, Int, Volume
-from .lao import LocalAmbientOcclusion, lao
+from .lao import LocalAmbientOcclusion, _concrete, lao
 from .transfer import Feature, TransferFunction, _feature_opacities, _feature_tuple
 
 _WHERE = "volshade.feature_ao"
@@ -271,19 +271,32 @@ def feature_ao(
     """
     _checks.option(merge, MERGES, "merge", _WHERE)
     opacities = _feature_opacities(volume, features, base, step, _WHERE)
+    # a known radius and offset stay known (static) under the jit below, so lao checks
+    # them and sizes its padding from them as it does for an eager call
+    radius, offset = ((value if known is None else known) for value, known in
+                      ((radius, _concrete(radius)), (offset, _concrete(offset))))
+    return _merged(opacities, _LaoCall(dict(
+        directions=directions, radius=radius, offset=offset, samples=samples,
+        weights=weights, opacity_correction=opacity_correction, brick_size=brick_size,
+        max_radius=max_radius, implementation=implementation)), merge)
 
-    def one(alpha):
-        return lao(alpha, directions=directions, radius=radius, offset=offset,
-                   samples=samples, weights=weights, opacity_correction=opacity_correction,
-                   brick_size=brick_size, max_radius=max_radius,
-                   implementation=implementation)
 
-    return _merged(opacities, one, merge)
+class _LaoCall(eqx.Module):
+    """:func:`lao` with these keyword arguments, as a pytree (arrays traced, the rest
+    static), so that :func:`_merged` compiles once per structure, not once per call."""
+
+    kwargs: dict
+
+    def __call__(self, alpha: Array) -> Array:
+        return lao(alpha, **self.kwargs)
 
 
+@eqx.filter_jit
 def _merged(opacities: Array, ao_of: Callable[[Array], Array], merge: str) -> Array:
     """``ao_of`` of each feature's opacity, merged: one feature at a time (``lax.map``),
-    so one compiled march and one march's memory whatever the number of features."""
+    so one compiled march and one march's memory whatever the number of features.
+    Compiled (``ao_of`` is a Module: its arrays are traced and the rest static), so an
+    eager call does not trace and compile the loop again each time."""
     return MERGES[merge](lax.map(ao_of, opacities), opacities)
 
 
