@@ -10,6 +10,7 @@ from skimage.filters import gaussian
 import volshade as vs
 from volshade.directions import icosphere_points
 from volshade.obscurance import _gaussian_smooth
+from volshade.saliency import opacity_factor
 
 RNG = np.random.default_rng(5)
 
@@ -37,10 +38,24 @@ def test_smoothing_blurs_the_density_before_the_search():
     assert float(jnp.max(jnp.abs(plain - params(vol, tf)))) > 0.05
 
 
+def test_saliency_modulation_smooths_the_same_way():
+    vol = vs.data.phantom("shells", shape=14)
+    tf = vs.transfer.preset("shells")
+    params = vs.SaliencyModulation(d_max=6.0, level=0, size=3, smoothing=1.0)
+    obs = vs.obscurance(_gaussian_smooth(tf.opacity(vol), 1.0), directions=icosphere_points(0),
+                        d_max=6.0, rho="sqrt")
+    want = opacity_factor(vs.saliency(obs, size=3), threshold=0.2)
+    np.testing.assert_allclose(params(vol, tf), want, atol=1e-9)
+    plain = vs.SaliencyModulation(d_max=6.0, level=0, size=3)(vol, tf)
+    assert float(jnp.max(jnp.abs(plain - want))) > 0.05
+
+
+@pytest.mark.parametrize("module", [vs.ObscuranceParams, vs.SaliencyModulation])
 @pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), True, "1"])
-def test_smoothing_must_be_a_finite_number_at_least_zero(bad):
-    with pytest.raises(ValueError, match="`smoothing` must be a finite number >= 0"):
-        vs.ObscuranceParams(smoothing=bad)
+def test_smoothing_must_be_a_finite_number_at_least_zero(bad, module):
+    with pytest.raises(ValueError, match=f"{module.__name__}: `smoothing` must be a finite "
+                                         f"number >= 0"):
+        module(smoothing=bad)
 
 
 def test_smoothing_accepts_numpy_numbers_and_blurs_integer_volumes_as_floats():

@@ -824,6 +824,14 @@ def _static_number(value):
     return value
 
 
+def _check_smoothing(smoothing: float, where: str) -> None:
+    """Refuse a ``smoothing`` that is not a finite number >= 0 (after
+    :func:`_static_number`)."""
+    if not (isinstance(smoothing, float) and math.isfinite(smoothing) and smoothing >= 0):
+        raise ValueError(f"{where}: `smoothing` must be a finite number >= 0 (Gaussian "
+                         f"sigma in voxels, static), got {smoothing!r}.")
+
+
 class ObscuranceParams(eqx.Module):
     r"""Obscurance settings for a :class:`volshade.Scene` (``ambient="obscurance"``).
 
@@ -875,10 +883,7 @@ class ObscuranceParams(eqx.Module):
 
     def __check_init__(self):
         where = "volshade.ObscuranceParams"
-        if not (isinstance(self.smoothing, float) and math.isfinite(self.smoothing)
-                and self.smoothing >= 0):
-            raise ValueError(f"{where}: `smoothing` must be a finite number >= 0 (Gaussian "
-                             f"sigma in voxels, static), got {self.smoothing!r}.")
+        _check_smoothing(self.smoothing, where)
         _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
         if self.density not in _DENSITIES:
             raise ValueError(f"{where}: unknown density {self.density!r}; valid values are "

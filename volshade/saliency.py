@@ -49,12 +49,15 @@ from .directions import _check_level, icosphere_points
 from .gradient import _WEIGHTS, _check_size, gradient_magnitude, regression_gradient
 from .obscurance import (
     RHO_FUNCTIONS,
+    _check_smoothing,
     _d_max_problems,
     _direction_array,
+    _gaussian_smooth,
     _line_groups,
     _shear,
     _shift_up,
     _static_dirs,
+    _static_number,
     _to_frame,
     obscurance,
 )
@@ -242,6 +245,14 @@ def viewpoint_saliency(
     ``per_area=True`` the sum is divided by :func:`projected_area` (the most
     salient view per unit of projected area, Figure 6 f-g); a viewpoint that sees
     an empty volume gets 0.
+
+    On measured data, restrict the saliency to what should be looked at (e.g.
+    ``saliency * (opacity > 0)``, and 0 near faces where the scan is cut). The
+    obscurance varies in the air around an object and jumps where the data ends, and
+    both carry saliency: on Colin27 (3 mm voxels, ``head`` preset, 42 directions,
+    ``d_max`` 16) 37% of it lies in voxels without opacity, and the most salient of 42
+    views looks down at the crown (``"transmittance"``) or up at the cut neck
+    (``"contribution"``).
 
     Args:
         saliency: ``(D, H, W)`` voxel saliency (:func:`saliency`).
@@ -498,6 +509,11 @@ class SaliencyModulation(eqx.Module):
         multiply: multiply the opacity by the saliency (default True).
         boost_top: ``None`` (default) or the top fraction of the saliency range whose
             opacity is doubled (:func:`modulate_opacity`).
+        smoothing: standard deviation in voxels of a Gaussian applied to the opacity
+            before the occluder search (0, the default: none), as in
+            :class:`~volshade.obscurance.ObscuranceParams`: on noisy measured data the
+            strict "greater than" test draws the voxel grid into the obscurance, and
+            its gradient, the saliency, takes it up.
 
     Raises:
         ValueError / TypeError: a non-finite ``threshold``, a bad ``d_max``, an
@@ -514,9 +530,11 @@ class SaliencyModulation(eqx.Module):
     size: int = eqx.field(static=True, default=5)
     multiply: bool = eqx.field(static=True, default=True)
     boost_top: float | None = eqx.field(static=True, default=None)
+    smoothing: float = eqx.field(static=True, default=0.0, converter=_static_number)
 
     def __check_init__(self):
         where = "volshade.SaliencyModulation"
+        _check_smoothing(self.smoothing, where)
         _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
         _check_level(self.level, where)
         _check_size(self.size, where)
@@ -538,8 +556,11 @@ class SaliencyModulation(eqx.Module):
                  spacing: float | tuple[float, float, float] = 1.0) -> Float[Array, "D H W"]:
         """The opacity factor volume for ``volume`` classified by ``transfer``, with
         voxels of ``spacing`` mm (the scene's) for the saliency's regression gradient."""
-        obs = obscurance(transfer.opacity(volume), directions=icosphere_points(self.level),
-                         d_max=self.d_max, rho=self.rho)
+        density = transfer.opacity(volume)
+        if self.smoothing > 0:
+            density = _gaussian_smooth(density, self.smoothing)
+        obs = obscurance(density, directions=icosphere_points(self.level), d_max=self.d_max,
+                         rho=self.rho)
         return opacity_factor(saliency(obs, size=self.size, spacing=spacing),
                               threshold=self.threshold, multiply=self.multiply,
                               boost_top=self.boost_top)
