@@ -8,6 +8,7 @@ import pytest
 import reference_obscurance as ref
 from helpers import check_grad_fd
 
+import volshade as vs
 from volshade.directions import fibonacci, icosphere, icosphere_points
 from volshade.obscurance import (
     RHO_FUNCTIONS,
@@ -20,6 +21,7 @@ from volshade.obscurance import (
     occluder_distances,
     threshold,
 )
+from volshade.saliency import opacity_factor
 
 RHOS = tuple(RHO_FUNCTIONS)
 DIRS12 = np.asarray(icosphere(0))
@@ -171,6 +173,23 @@ def test_user_callable_rho_and_dtype():
                             colors=jnp.ones((8, 8, 8, 3), jnp.float32))
     np.testing.assert_allclose(np.asarray(rgb_square), np.repeat(want[..., None], 3, -1), rtol=0,
                                atol=1e-6)
+
+
+def test_parameter_modules_take_a_callable_rho():
+    vol = vs.data.phantom("shells", shape=10)
+    tf = vs.transfer.preset("shells")
+    square = lambda d, dm: (d / dm) ** 2  # noqa: E731
+    got = ObscuranceParams(d_max=4.0, level=0, rho=square)(vol, tf)
+    np.testing.assert_array_equal(got, obscurance(tf.opacity(vol), directions=DIRS12,
+                                                  d_max=4.0, rho=square))
+    assert not np.array_equal(got, ObscuranceParams(d_max=4.0, level=0)(vol, tf))
+    factor = vs.SaliencyModulation(d_max=4.0, level=0, size=3, rho=square)(vol, tf)
+    np.testing.assert_array_equal(factor, opacity_factor(
+        vs.saliency(obscurance(tf.opacity(vol), directions=DIRS12, d_max=4.0, rho=square),
+                    size=3), threshold=0.2))
+    for module in (ObscuranceParams, vs.SaliencyModulation):
+        with pytest.raises(ValueError, match="unknown rho 'cubic'"):
+            module(rho="cubic")
 
 
 # ------------------------------------------------------------------ corner phantom

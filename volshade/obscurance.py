@@ -850,7 +850,9 @@ class ObscuranceParams(eqx.Module):
             0.5 to 0.7 gives flat surfaces their brightness back and darkens only
             creases and cavities (the paper's Figure 1 uses low/high 0/1, 0.4/0.6,
             0.6/0.7).
-        rho: name of a rho function (:data:`RHO_FUNCTIONS`).
+        rho: name of a rho function (:data:`RHO_FUNCTIONS`) or a callable
+            ``rho(d, d_max)``, as for :func:`obscurance` (static: a new function
+            compiles again).
         level: icosphere level of the directions: 0, 1, 2 for 12, 42, 162.
         color_bleeding: tint by the occluders' transfer-function colours (eq. 3): a
             voxel's own colour or, with ``smoothing``, the opacity-weighted mean colour
@@ -875,7 +877,7 @@ class ObscuranceParams(eqx.Module):
         converter=_checks.leaf("volshade.ObscuranceParams", "low"), default=0.0)
     high: Float[Array, ""] = eqx.field(
         converter=_checks.leaf("volshade.ObscuranceParams", "high"), default=1.0)
-    rho: str = eqx.field(static=True, default="sqrt")
+    rho: str | Callable[[Array, Array], Array] = eqx.field(static=True, default="sqrt")
     level: int = eqx.field(static=True, default=1)
     color_bleeding: bool = eqx.field(static=True, default=False)
     density: str = eqx.field(static=True, default="opacity")
@@ -884,7 +886,7 @@ class ObscuranceParams(eqx.Module):
     def __check_init__(self):
         where = "volshade.ObscuranceParams"
         _check_smoothing(self.smoothing, where)
-        _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
+        _rho_fn(self.rho, where)
         if self.density not in _DENSITIES:
             raise ValueError(f"{where}: unknown density {self.density!r}; valid values are "
                              f"{', '.join(map(repr, _DENSITIES))}.")

@@ -48,12 +48,12 @@ from ._types import Array, ArrayLike, Float
 from .directions import _check_level, icosphere_points
 from .gradient import _WEIGHTS, _check_size, gradient_magnitude, regression_gradient
 from .obscurance import (
-    RHO_FUNCTIONS,
     _check_smoothing,
     _d_max_problems,
     _direction_array,
     _gaussian_smooth,
     _line_groups,
+    _rho_fn,
     _shear,
     _shift_up,
     _static_dirs,
@@ -502,8 +502,9 @@ class SaliencyModulation(eqx.Module):
     Attributes:
         threshold: saliency below which voxels become transparent (default 0.2).
         d_max: obscurance distance in voxels (default 32).
-        rho: the obscurance's rho (:data:`volshade.obscurance.RHO_FUNCTIONS` name,
-            default ``"sqrt"``).
+        rho: the obscurance's rho: a :data:`volshade.obscurance.RHO_FUNCTIONS` name
+            (default ``"sqrt"``) or a callable ``rho(d, d_max)``, as for
+            :func:`~volshade.obscurance.obscurance`.
         level: icosphere level of the obscurance directions, 0 to 4 (default 1: 42).
         size: regression neighbourhood of the saliency, 5 (default) or 3.
         multiply: multiply the opacity by the saliency (default True).
@@ -525,7 +526,7 @@ class SaliencyModulation(eqx.Module):
         converter=_checks.leaf("volshade.SaliencyModulation", "threshold"), default=0.2)
     d_max: Float[Array, ""] = eqx.field(
         converter=_checks.leaf("volshade.SaliencyModulation", "d_max"), default=32.0)
-    rho: str = eqx.field(static=True, default="sqrt")
+    rho: str | Callable[[Array, Array], Array] = eqx.field(static=True, default="sqrt")
     level: int = eqx.field(static=True, default=1)
     size: int = eqx.field(static=True, default=5)
     multiply: bool = eqx.field(static=True, default=True)
@@ -535,7 +536,7 @@ class SaliencyModulation(eqx.Module):
     def __check_init__(self):
         where = "volshade.SaliencyModulation"
         _check_smoothing(self.smoothing, where)
-        _checks.option(self.rho, RHO_FUNCTIONS, "rho", where)
+        _rho_fn(self.rho, where)
         _check_level(self.level, where)
         _check_size(self.size, where)
         _boost_top(self.boost_top, where)
