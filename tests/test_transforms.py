@@ -124,7 +124,10 @@ def test_obscurance_params_value_matches_reference_and_thresholds(density, color
                   color_bleeding=color_bleeding)
     got = np.asarray(vs.ObscuranceParams(**kwargs, density=density)(jnp.asarray(vol), tf))
     occluders = np.asarray(tf.opacity(jnp.asarray(vol))) if density == "opacity" else vol
-    colors = np.asarray(tf.color(jnp.asarray(vol))) if color_bleeding else None
+    # (a voxel without opacity, an occluder by intensity, reflects the ambient white)
+    opacity = np.asarray(tf.opacity(jnp.asarray(vol)))[..., None]
+    colors = (np.where(opacity > 0, np.asarray(tf.color(jnp.asarray(vol))), 1.0)
+              if color_bleeding else None)
     raw = ref.obscurance(occluders, icosphere_points(0), 3.5, "linear", colors=colors)
     # every band of the thresholds is populated, so dropping or moving them shows
     for band in (raw < 0.5, (raw >= 0.5) & (raw < 0.85), raw >= 0.85):
