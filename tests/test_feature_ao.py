@@ -438,3 +438,32 @@ def test_an_eager_call_compiles_once():
         compiled = _merged._cached._cache_size()
         np.testing.assert_array_equal(call(vol + 0.0), first)
         assert _merged._cached._cache_size() == compiled
+    # another radius (the same whole-number padding) and another offset: no new compile
+    other = vs.feature_ao(vol, features=features, base=tf, directions=4, radius=2.6,
+                          offset=0.5, samples=4)
+    assert _merged._cached._cache_size() == compiled
+    np.testing.assert_array_equal(other, vs.feature_ao(
+        vol, features=features, base=tf, directions=vs.directions.fibonacci(4), radius=2.6,
+        offset=0.5, samples=4))
+
+
+def test_numpy_scalars_are_options_and_known_bad_values_raise_at_once():
+    vol, tf = vs.data.phantom("shells", shape=8), vs.transfer.preset("shells")
+    features = [vs.IntervalFeature(0.8, 1.0), vs.IntervalFeature(0.2, 0.4)]
+    plain = dict(directions=6, radius=3.0, samples=4, brick_size=4, max_radius=5.0,
+                 opacity_correction=True)
+    numpy = dict(directions=np.int64(6), radius=np.float32(3.0), samples=np.int64(4),
+                 brick_size=np.int64(4), max_radius=np.float32(5.0),
+                 opacity_correction=np.bool_(True))
+    np.testing.assert_array_equal(vs.feature_ao(vol, features=features, base=tf, **numpy),
+                                  vs.feature_ao(vol, features=features, base=tf, **plain))
+    for bad, match in ((dict(weights=-np.ones(6)), "`weights` must be finite, >= 0"),
+                       (dict(radius=1.0, offset=2.0), "must be > `offset`")):
+        with pytest.raises(ValueError, match=f"^volshade.feature_ao: .*{match}"):
+            vs.feature_ao(vol, features=features, base=tf, **{**plain, **bad})
+    module = vs.FeatureAmbientOcclusion(features, lao=vs.LocalAmbientOcclusion(
+        3.0, directions=6, samples=4, max_radius=4.0))
+    stepped = eqx.tree_at(lambda m: m.lao.radius, module, jnp.asarray(5.0))  # e.g. by a fit
+    with pytest.raises(ValueError, match="^volshade.FeatureAmbientOcclusion: .*exceeds "
+                                         "`max_radius`"):
+        stepped(vol, base=tf)

@@ -112,3 +112,15 @@ def test_smoothed_bleeding_takes_the_opacity_weighted_mean_colour():
     grads = jax.grad(lambda t: jnp.sum(params(vol, t)))(tf)
     assert np.all(np.isfinite(grads.colors)) and np.any(grads.colors != 0)
     assert np.all(np.isfinite(grads.opacities)) and np.any(grads.opacities != 0)
+
+
+def test_intensity_density_without_colours_needs_no_classification():
+    # a volume beyond the transfer function's control points: only the colours and the
+    # opacity density would classify it
+    vol = 2 * vs.data.phantom("shells", shape=10)
+    params = vs.ObscuranceParams(d_max=4.0, level=0, density="intensity")
+    np.testing.assert_array_equal(params(vol, vs.transfer.preset("shells")),
+                                  vs.obscurance(vol, directions=icosphere_points(0), d_max=4.0))
+    with pytest.raises(ValueError, match="outside the transfer function's control points"):
+        vs.ObscuranceParams(d_max=4.0, level=0, density="intensity", color_bleeding=True)(
+            vol, vs.transfer.preset("shells"))

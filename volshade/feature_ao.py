@@ -70,6 +70,7 @@ References:
 """
 
 import functools
+import math
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -78,7 +79,7 @@ from jax import lax
 
 from . import _checks
 from ._types import Array, ArrayLike, Float, Int, Volume
-from .lao import LocalAmbientOcclusion, _concrete, lao
+from .lao import LocalAmbientOcclusion, _concrete, _prepare
 from .transfer import Feature, TransferFunction, _feature_opacities, _feature_tuple
 
 _WHERE = "volshade.feature_ao"
@@ -271,32 +272,31 @@ def feature_ao(
     """
     _checks.option(merge, MERGES, "merge", _WHERE)
     opacities = _feature_opacities(volume, features, base, step, _WHERE)
-    # a known radius and offset stay known (static) under the jit below, so lao checks
-    # them and sizes its padding from them as it does for an eager call
-    radius, offset = ((value if known is None else known) for value, known in
-                      ((radius, _concrete(radius)), (offset, _concrete(offset))))
-    return _merged(opacities, _LaoCall(dict(
-        directions=directions, radius=radius, offset=offset, samples=samples,
-        weights=weights, opacity_correction=opacity_correction, brick_size=brick_size,
-        max_radius=max_radius, implementation=implementation)), merge)
-
-
-class _LaoCall(eqx.Module):
-    """:func:`lao` with these keyword arguments, as a pytree (arrays traced, the rest
-    static), so that :func:`_merged` compiles once per structure, not once per call."""
-
-    kwargs: dict
-
-    def __call__(self, alpha: Array) -> Array:
-        return lao(alpha, **self.kwargs)
+    # lao's checks, here: on values known now they raise at once, naming feature_ao (in
+    # the compiled loop below they would be run-time errors)
+    _prepare(opacities[0], directions=directions, radius=radius, offset=offset,
+             samples=samples, weights=weights, opacity_correction=opacity_correction,
+             brick_size=brick_size, max_radius=max_radius, where=_WHERE)
+    known = _concrete(radius)
+    if max_radius is None and known is not None:
+        # the padding lao sizes from a known radius, as a static bound: other radii up to
+        # the same whole number reuse the compiled loop
+        max_radius = float(math.ceil(known))
+    params = LocalAmbientOcclusion(radius, offset=offset, directions=directions,
+                                   samples=samples, weights=weights,
+                                   opacity_correction=opacity_correction,
+                                   brick_size=brick_size, max_radius=max_radius,
+                                   implementation=implementation)
+    return _merged(opacities, params, merge)
 
 
 @eqx.filter_jit
 def _merged(opacities: Array, ao_of: Callable[[Array], Array], merge: str) -> Array:
     """``ao_of`` of each feature's opacity, merged: one feature at a time (``lax.map``),
     so one compiled march and one march's memory whatever the number of features.
-    Compiled (``ao_of`` is a Module: its arrays are traced and the rest static), so an
-    eager call does not trace and compile the loop again each time."""
+    Compiled (``ao_of`` is a :class:`~volshade.LocalAmbientOcclusion`: its arrays are
+    traced and its options static), so an eager call does not trace and compile the
+    loop again each time."""
     return MERGES[merge](lax.map(ao_of, opacities), opacities)
 
 
@@ -348,6 +348,12 @@ class FeatureAmbientOcclusion(eqx.Module):
                  step: float | None = None) -> Volume:
         """Feature-driven AO of ``volume``: :func:`feature_ao` with these parameters
         (``base`` and ``step`` as there)."""
-        return _merged(_feature_opacities(volume, self.features, base, step,
-                                          "volshade.FeatureAmbientOcclusion"),
-                       self.lao, self.merge)
+        where = "volshade.FeatureAmbientOcclusion"
+        opacities = _feature_opacities(volume, self.features, base, step, where)
+        p = self.lao
+        # as in feature_ao: values known now (e.g. a radius set with eqx.tree_at) are
+        # refused at once
+        _prepare(opacities[0], directions=p.directions, radius=p.radius, offset=p.offset,
+                 samples=p.samples, weights=p.weights, opacity_correction=p.opacity_correction,
+                 brick_size=p.brick_size, max_radius=p.max_radius, where=where)
+        return _merged(opacities, p, self.merge)

@@ -857,10 +857,14 @@ class ObscuranceParams(eqx.Module):
         color_bleeding: tint by the occluders' transfer-function colours (eq. 3): a
             voxel's own colour or, with ``smoothing``, the opacity-weighted mean colour
             of the neighbourhood its smoothed density comes from,
-            $G * (\alpha c) / G * \alpha$. A voxel without opacity (an occluder by
-            ``density="intensity"`` or through smoothing) tints like the ambient white:
-            it reflects nothing of its own, and the colour a transfer function gives
-            invisible values (black, in every preset) would darken its neighbours.
+            $G * (\alpha c) / G * \alpha$ (so a voxel that occludes only through
+            the smoothing takes the colour of the material near it). A voxel with no
+            opacity (and, with ``smoothing``, none near it), which can occlude only
+            with ``density="intensity"``, tints like the ambient white: it reflects
+            nothing of its own, and the colour a transfer function gives invisible
+            values (black, in every preset) would darken its neighbours. That switch
+            from white to a colour, as opacity appears, is a step the gradient
+            w.r.t. the opacities does not see.
         density: what occludes: ``"opacity"`` (transfer-function opacity) or
             ``"intensity"`` (raw values, transfer-function independent).
         smoothing: standard deviation in voxels of a Gaussian applied to the density
@@ -903,7 +907,10 @@ class ObscuranceParams(eqx.Module):
     def __call__(self, volume: Float[Array, "D H W"], transfer) -> Array:
         """Thresholded obscurance of ``volume`` classified by ``transfer``: ``(D, H, W)``,
         or ``(D, H, W, 3)`` with colour bleeding."""
-        alpha = transfer.opacity(volume)
+        # (the intensity alone, without colours, needs no classification: the volume may
+        # then lie outside the transfer function's range)
+        classify = self.density == "opacity" or self.color_bleeding
+        alpha = transfer.opacity(volume) if classify else None
         density = alpha if self.density == "opacity" else volume
         if self.smoothing > 0:
             density = _gaussian_smooth(density, self.smoothing)

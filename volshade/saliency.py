@@ -519,7 +519,8 @@ class SaliencyModulation(eqx.Module):
     Raises:
         ValueError / TypeError: a non-finite ``threshold``, a bad ``d_max``, an
             unknown ``rho``, a ``level`` outside 0-4, a ``size`` other than 3 or 5, a
-            ``multiply`` that is not a bool, a ``boost_top`` outside (0, 1].
+            ``multiply`` that is not a bool, a ``boost_top`` outside (0, 1], a
+            ``smoothing`` that is not a finite number >= 0.
     """
 
     threshold: Float[Array, ""] = eqx.field(
