@@ -236,9 +236,11 @@ class Scene(eqx.Module):
             if value is None and used:
                 setattr(self, name, kind())
                 defaulted.add(name)
+            elif name not in defaulted:
+                continue
             elif value is None or not _still_default(value, kind):
                 defaulted.discard(name)  # (a value put in its place is the user's)
-            elif name in defaulted and not used:
+            elif not used:
                 setattr(self, name, None)
                 defaulted.discard(name)
         self._defaulted = tuple(sorted(defaulted))
