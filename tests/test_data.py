@@ -370,3 +370,13 @@ def test_load_bad_downsample(data_dir, monkeypatch):
         data.load("colin27", downsample=2.0)
     with pytest.raises(TypeError, match="`normalize` must be True or False"):
         data.load("colin27", normalize=None)
+
+
+def test_load_points_a_file_path_to_load_nifti(tmp_path, xyz):
+    path = _write(tmp_path / "tiny.nii.gz", xyz, np.eye(4))
+    for given in (path, str(path), "missing.nii"):
+        with pytest.raises(ValueError, match=r"names a file, not a dataset; read a NIfTI "
+                                             r"file with volshade.data.load_nifti\(path\)"):
+            data.load(given)
+    with pytest.raises(ValueError, match="unknown dataset 'colin28'"):
+        data.load("colin28")

@@ -471,6 +471,11 @@ def test_camera_geometry_and_png(tmp_path):
         save_png(tmp_path / "x.png", np.full((2, 2), 0.5 + 0j))
     with pytest.raises(ValueError, match="empty"):
         save_png(tmp_path / "x.png", np.zeros((0, 4, 3)))
+    save_png(tmp_path / "upper.PNG", jnp.ones((2, 2, 3)))
+    for other in ("x.jpg", "x"):  # scikit-image would write a JPEG, or fail unnamed
+        with pytest.raises(ValueError, match=r"`path` must end in \.png, got .*skimage"):
+            save_png(tmp_path / other, jnp.ones((2, 2, 3)))
+    assert not (tmp_path / "x.jpg").exists()
 
 
 def test_intersect_box_matches_the_numpy_slab_method():

@@ -515,7 +515,8 @@ def load(name: str, *, downsample: int = 1,
         MNI152 volumes are ``(189, 233, 197)`` at 1 mm.
 
     Raises:
-        ValueError: unknown ``name``, or ``downsample`` < 1.
+        ValueError: unknown ``name`` (a file path is for :func:`load_nifti`), or
+            ``downsample`` < 1.
         TypeError: ``normalize`` not ``True`` or ``False``.
         FileNotFoundError: the data is not on this machine; the message says how to
             get it (set ``VOLSHADE_DATA``, ``apt-get install mricron-data``, or the
@@ -528,6 +529,11 @@ def load(name: str, *, downsample: int = 1,
         ((91, 109, 91), (2.0, 2.0, 2.0))
     """
     where = "volshade.data.load"
+    if isinstance(name, str | os.PathLike) and name not in _FILES and (
+            os.fspath(name).endswith((".nii", ".nii.gz")) or os.path.exists(name)):
+        raise ValueError(f"{where}: {os.fspath(name)!r} names a file, not a dataset; "
+                         f"read a NIfTI file with volshade.data.load_nifti(path), or name "
+                         f"one of {', '.join(map(repr, _FILES))}.")
     _checks.option(name, _FILES, "dataset", where)
     _checks.positive_int(downsample, "downsample", where)
     _checks.flag(normalize, "normalize", where)

@@ -848,7 +848,11 @@ class LocalAmbientOcclusion(eqx.Module):
 
     Args:
         radius: $R$ in voxels (default 16), an array leaf; a leading batch axis makes
-            a Module of several settings (then ``jax.vmap``).
+            a Module of several settings. Map it with ``eqx.filter_vmap(f,
+            in_axes=(axes,))``, ``axes`` marking the batched leaves (``directions``
+            and ``offset`` are array leaves too): ``axes = eqx.tree_at(lambda p:
+            p.radius, jax.tree_util.tree_map(lambda _: None, params), 0, is_leaf=lambda
+            x: x is None)``.
         offset: $a$ in voxels (default 1), an array leaf.
         directions: ``(L, 3)`` directions, or an int ``L`` for
             ``volshade.directions.fibonacci(L)`` (default 42).

@@ -314,15 +314,23 @@ def save_png(path, image: Float[Array, "H W C"]) -> None:
     blended in. A boolean mask is written white where True.
 
     Args:
-        path: the file to write (its extension sets the format: ``.png``).
+        path: the ``.png`` file to write (for other formats, write the image with
+            ``skimage.io.imsave``).
         image: ``(H, W)``, ``(H, W, 3)`` or ``(H, W, 4)`` floats (or bools).
 
     Raises:
-        ValueError: another shape, an empty image, NaN or inf.
+        ValueError: a path that does not end in ``.png``; another shape, an empty
+            image, NaN or inf.
         TypeError: an integer image (convert it with ``skimage.util.img_as_float``)
             or one that is not real numbers.
     """
     from skimage import io, util
+
+    if not str(path).lower().endswith(".png"):
+        # scikit-image would pick the format from the extension (a JPEG for .jpg) or
+        # fail without one
+        raise ValueError(f"volshade.save_png: `path` must end in .png, got {str(path)!r}; "
+                         f"write other formats with skimage.io.imsave.")
 
     img = np.asarray(image)
     if not (img.ndim == 2 or img.ndim == 3 and img.shape[-1] in (3, 4)):

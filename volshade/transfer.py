@@ -2,7 +2,10 @@ r"""Transfer functions: classification of intensities into colour and opacity.
 
 A :class:`TransferFunction` is piecewise linear in the intensity: between
 control points ``points[k]`` the RGB colour and the opacity are interpolated
-linearly, and beyond the outermost points they are held constant. Every control
+linearly. Values outside ``[points[0], points[-1]]`` are refused rather than classified
+like the end points (that clamp would render a volume in other units as one solid
+blob): a window over part of the range still needs control points at the volume's
+minimum and maximum, e.g. of opacity 0. Every control
 value (positions, colours, opacities) is an array leaf, so the image is
 differentiable with respect to all of them.
 
@@ -111,8 +114,9 @@ class TransferFunction(eqx.Module):
             outside,
             "`volume` has values outside the transfer function's control points "
             "[points[0], points[-1]], which would all be classified like the end points; "
-            "normalise the volume (e.g. `volshade.data.load(..., normalize=True)`) or give "
-            "control points over its whole range.")], where)
+            "add control points at the volume's minimum and maximum (e.g. of opacity 0 "
+            "around a window), or rescale the volume to the points' range (e.g. "
+            "`volshade.data.load(..., normalize=True)` for [0, 1]).")], where)
 
     @classmethod
     def from_points(
@@ -176,12 +180,14 @@ class TransferFunction(eqx.Module):
         return -log1m(tf._opacity(volume, None)) / self.step0
 
     def color(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape 3"]:
-        """RGB colour of each value, shape ``(*shape, 3)``; NaN or inf is refused."""
+        """RGB colour of each value, shape ``(*shape, 3)``; NaN or inf, and values
+        outside ``[points[0], points[-1]]``, are refused (as by :meth:`opacity`)."""
         tf, volume = self._checked(volume, f"{_WHERE}.color")
         return tf._color(volume)
 
     def __call__(self, volume: Float[Array, "*shape"], *, step=None):
-        """``(color, opacity)`` of each value; NaN or inf is refused."""
+        """``(color, opacity)`` of each value; NaN or inf, and values outside
+        ``[points[0], points[-1]]``, are refused (as by :meth:`opacity`)."""
         tf, volume = self._checked(volume, f"{_WHERE}.__call__")
         return tf._rgba(volume, _step(step, f"{_WHERE}.__call__"))
 
