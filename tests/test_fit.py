@@ -17,7 +17,7 @@ import volshade as vs
 from volshade.fit import (
     _forward_by_reverse,
     _from_bounded,
-    _leaf,
+    _parameter,
     _parameters,
     _to_bounded,
 )
@@ -288,5 +288,5 @@ def test_leaves_without_a_gradient_are_refused(path, match):
         vs.fit(scene, cam, jnp.zeros((4, 4, 4)), params=[path])
     if path.startswith("focus"):
         smooth = eqx.tree_at(lambda s: s.focus, scene, vs.Focus(kind="gaussian"))
-        _leaf(smooth, path)  # smooth in them: accepted (this raises otherwise)
+        _parameter(smooth, path)  # smooth in them: accepted (this raises otherwise)
 

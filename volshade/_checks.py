@@ -211,3 +211,11 @@ def option(value: Any, table: Mapping[str, Any], name: str, where: str) -> Any:
         valid = ", ".join(repr(k) for k in table)
         raise ValueError(f"{where}: unknown {name} {value!r}; valid values are {valid}.")
     return table[value]
+
+
+def broadcasts(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
+    """Whether ``shape`` broadcasts to ``target`` (without growing it)."""
+    try:
+        return np.broadcast_shapes(shape, target) == tuple(target)
+    except ValueError:
+        return False

@@ -629,7 +629,7 @@ def composite(
     else:
         bg = _checks.finite(_checks.as_float_array(background, "background", where).astype(dtype),
                             "background", where)
-        if bg.shape[-1:] != (3,) or not _broadcasts(bg.shape, (*batch, 3)):
+        if bg.shape[-1:] != (3,) or not _checks.broadcasts(bg.shape, (*batch, 3)):
             raise ValueError(f"{where}: `background` must be an RGB colour that broadcasts to "
                              f"the rays, (..., 3) = {(*batch, 3)}, got {bg.shape}.")
         bg = jnp.broadcast_to(bg, (*batch, 3))
@@ -640,7 +640,7 @@ def composite(
         bg_imp = jnp.full(batch, -jnp.inf, dtype)
     else:
         bg_imp = _checks.as_float_array(background_importance, "background_importance", where)
-        if not _broadcasts(bg_imp.shape, batch):
+        if not _checks.broadcasts(bg_imp.shape, batch):
             raise ValueError(f"{where}: `background_importance` must broadcast to the rays, "
                              f"(...) = {batch}, got {bg_imp.shape}.")
         bg_imp = _checks.refuse(
@@ -649,14 +649,6 @@ def composite(
                                     "background importance), got NaN or +inf.")], where)
         bg_imp = jnp.broadcast_to(bg_imp, batch)
     return _composite(colors, alphas, importance, bg, bg_imp, unroll=unroll)
-
-
-def _broadcasts(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
-    """Whether ``shape`` broadcasts to ``target`` (without growing it)."""
-    try:
-        return jnp.broadcast_shapes(shape, target) == target
-    except ValueError:
-        return False
 
 
 @functools.partial(jax.jit, static_argnames=("unroll",))

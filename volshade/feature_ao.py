@@ -350,10 +350,7 @@ class FeatureAmbientOcclusion(eqx.Module):
         (``base`` and ``step`` as there)."""
         where = "volshade.FeatureAmbientOcclusion"
         opacities = _feature_opacities(volume, self.features, base, step, where)
-        p = self.lao
         # as in feature_ao: values known now (e.g. a radius set with eqx.tree_at) are
         # refused at once
-        _prepare(opacities[0], directions=p.directions, radius=p.radius, offset=p.offset,
-                 samples=p.samples, weights=p.weights, opacity_correction=p.opacity_correction,
-                 brick_size=p.brick_size, max_radius=p.max_radius, where=where)
-        return _merged(opacities, p, self.merge)
+        _prepare(opacities[0], **self.lao._arguments(), where=where)
+        return _merged(opacities, self.lao, self.merge)

@@ -171,11 +171,6 @@ def _parameter(scene: Scene, path: str) -> tuple[_Parameter, Array | float]:
     return _Parameter(field, index), node[index] if index else node
 
 
-def _leaf(scene: Scene, path: str) -> Array | float:
-    """The value of the parameter at ``path`` (see :func:`_parameter`)."""
-    return _parameter(scene, path)[1]
-
-
 def _placed(scene: Scene, where: Sequence[_Parameter], values: Sequence[Array]) -> Scene:
     """``scene`` with each parameter's value in place: a whole leaf replaced, an element
     set in its array (several elements of one array are set in turn)."""

@@ -935,9 +935,14 @@ class LocalAmbientOcclusion(eqx.Module):
         return {"directions": "the ray directions are configuration; `lao` stops their "
                               "gradient"}
 
+    def _arguments(self) -> dict:
+        """These parameters as :func:`lao`'s keyword arguments, but ``implementation``
+        (so :func:`_prepare` takes them too)."""
+        return dict(directions=self.directions, radius=self.radius, offset=self.offset,
+                    samples=self.samples, weights=self.weights,
+                    opacity_correction=self.opacity_correction, brick_size=self.brick_size,
+                    max_radius=self.max_radius)
+
     def __call__(self, alpha: Volume) -> Volume:
         """AO of ``alpha``: :func:`lao` with these parameters."""
-        return lao(alpha, directions=self.directions, radius=self.radius, offset=self.offset,
-                   samples=self.samples, weights=self.weights,
-                   opacity_correction=self.opacity_correction, brick_size=self.brick_size,
-                   max_radius=self.max_radius, implementation=self.implementation)
+        return lao(alpha, **self._arguments(), implementation=self.implementation)

@@ -761,7 +761,7 @@ def obscurance_shading(
     vectors = {}
     for name, vec in (("light", light), ("view", view)):
         vec = _checks.as_float_array(vec, name, where).astype(dtype)
-        if vec.ndim < 1 or vec.shape[-1] != 3 or not _broadcasts(vec.shape, normal.shape):
+        if vec.ndim < 1 or vec.shape[-1] != 3 or not _checks.broadcasts(vec.shape, normal.shape):
             raise ValueError(f"{where}: `{name}` must have shape (3,) or one that "
                              f"broadcasts to `normal`'s {normal.shape}, got {vec.shape}.")
         vectors[name] = _checks.finite(vec, name, where)
@@ -783,13 +783,6 @@ def obscurance_shading(
     shaded = _obscurance_shading(normal, light, view, obscurance, *coefficients.values(),
                                  two_sided)
     return _checks.refuse(shaded, problems, where)
-
-
-def _broadcasts(shape: tuple, target: tuple) -> bool:
-    try:
-        return np.broadcast_shapes(shape, target) == target
-    except ValueError:
-        return False
 
 
 def _obscurance_shading(normal, light, view, obscurance, k_d, k_s, shininess,
@@ -911,20 +904,23 @@ class ObscuranceParams(eqx.Module):
         # then lie outside the transfer function's range)
         classify = self.density == "opacity" or self.color_bleeding
         alpha = transfer.opacity(volume) if classify else None
-        density = alpha if self.density == "opacity" else volume
-        if self.smoothing > 0:
-            density = _gaussian_smooth(density, self.smoothing)
-        colors = self._reflectances(alpha, transfer.color(volume)) if self.color_bleeding else None
+        # the smoothed opacity is both the density and the colours' weight: blurred once
+        weight = None if alpha is None else self._smooth(alpha)
+        density = weight if self.density == "opacity" else self._smooth(volume)
+        colors = (self._reflectances(alpha, weight, transfer.color(volume))
+                  if self.color_bleeding else None)
         obs = obscurance(density, directions=icosphere_points(self.level), d_max=self.d_max,
                          rho=self.rho, colors=colors)
         return threshold(obs, self.low, self.high)
 
-    def _reflectances(self, alpha: Array, colors: Array) -> Array:
-        """Each voxel's diffuse colour $R(q)$ as an occluder (see ``color_bleeding``)."""
-        weight = alpha
+    def _smooth(self, volume: Array) -> Array:
+        return _gaussian_smooth(volume, self.smoothing) if self.smoothing > 0 else volume
+
+    def _reflectances(self, alpha: Array, weight: Array, colors: Array) -> Array:
+        """Each voxel's diffuse colour $R(q)$ as an occluder (see ``color_bleeding``), from
+        its opacity, the smoothed opacity ``weight`` and its transfer-function colour."""
         if self.smoothing > 0:
-            weight = _gaussian_smooth(alpha, self.smoothing)
-            weighted = jnp.stack([_gaussian_smooth(alpha * colors[..., c], self.smoothing)
-                                  for c in range(3)], axis=-1)
+            weighted = jnp.stack([self._smooth(alpha * colors[..., c]) for c in range(3)],
+                                 axis=-1)
             colors = safe_div(weighted, weight[..., None])
         return jnp.where(weight[..., None] > 0, colors, jnp.ones_like(colors))
