@@ -41,15 +41,25 @@ def test_render_equals_march_with_the_scene_options():
                         "composition": "standard"}
 
 
+def _count_gradients(monkeypatch, calls):
+    """Append "gradient" to ``calls`` whenever a render asks for the gradient volume."""
+    render_module = sys.modules["volshade.render"]
+    real = render_module._shared_volumes
+
+    def counting(*args, **kwargs):
+        if kwargs["gradient"]:
+            calls.append("gradient")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(render_module, "_shared_volumes", counting)
+
+
 def test_effects_that_are_off_are_not_traced(monkeypatch):
     calls = []
     real = scene_module.AMBIENT["volume"]
     monkeypatch.setitem(scene_module.AMBIENT, "volume",
                         lambda sc: calls.append("ambient") or real(sc))
-    render_module = sys.modules["volshade.render"]
-    real_gradient = render_module.regression_gradient
-    monkeypatch.setattr(render_module, "regression_gradient",
-                        lambda *a, **k: calls.append("gradient") or real_gradient(*a, **k))
+    _count_gradients(monkeypatch, calls)
     cam = Camera.orbit(image_shape=(3, 3))
     off = Scene(volume=_volume(), transfer=preset("grey"))
     jax.make_jaxpr(lambda s: render(s, cam))(off)
@@ -65,10 +75,7 @@ def test_several_views_share_what_does_not_depend_on_the_view(monkeypatch):
     calls = []
     real_lao = scene_module.AMBIENT["lao"]
     monkeypatch.setitem(scene_module.AMBIENT, "lao", lambda sc: calls.append("lao") or real_lao(sc))
-    render_module = sys.modules["volshade.render"]
-    real_gradient = render_module.regression_gradient
-    monkeypatch.setattr(render_module, "regression_gradient",
-                        lambda *a, **k: calls.append("gradient") or real_gradient(*a, **k))
+    _count_gradients(monkeypatch, calls)
     scene = Scene(volume=jnp.asarray(np.random.default_rng(1).random((8, 8, 8))),
                   transfer=preset("grey"), shading="phong", ambient="lao",
                   lao=LocalAmbientOcclusion(2.5, directions=6, samples=3),

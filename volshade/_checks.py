@@ -75,11 +75,28 @@ def as_working_float(x: Any, name: str, where: str) -> Array:
     return at_least_float32(as_float_array(x, name, where))
 
 
+# Concrete arrays up to this many elements are checked on the host, with NumPy: an eager
+# check in jnp compiles an XLA program per operation, shape and dtype (about 25 ms each
+# on a CPU, most of a first eager call's checks); larger ones (volumes) stay on their
+# device, which a copy to the host would cost more than one compile.
+_HOST_CHECK_SIZE = 4096
+
+
+def array_module(*arrays: Any):
+    """``numpy`` when every one of ``arrays`` is concrete and small, else ``jax.numpy``:
+    the module to compute a check with (:func:`refuse` takes either's result)."""
+    leaves = jax.tree_util.tree_leaves(arrays)
+    if any(isinstance(x, jax.core.Tracer) or np.size(x) > _HOST_CHECK_SIZE for x in leaves):
+        return jnp
+    return np
+
+
 def non_finite(x: Any, *, minus_inf: bool = False) -> Array:
     """Where ``x`` is NaN or inf; with ``minus_inf``, -inf is a value, not an error (an
     importance of -inf means "no background")."""
-    x = jnp.asarray(x)
-    return ~(jnp.isfinite(x) | ((x == -jnp.inf) if minus_inf else False))
+    xp = array_module(x)
+    x = xp.asarray(x)
+    return ~(xp.isfinite(x) | ((x == -np.inf) if minus_inf else False))
 
 
 def flag(value: Any, name: str, where: str) -> bool:
@@ -151,7 +168,8 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
            hint: str = _OPACITY_HINT) -> Array:
     """``arr``, refused (:func:`refuse`) when it holds NaN or inf, or (``unit_range``)
     values outside [0, 1] (:func:`in_unit_range`)."""
-    arr = refuse(arr, [(~jnp.all(jnp.isfinite(arr)), f"`{name}` contains NaN or inf; clean "
+    xp = array_module(arr)
+    arr = refuse(arr, [(~xp.all(xp.isfinite(arr)), f"`{name}` contains NaN or inf; clean "
                         f"the data (e.g. `jnp.nan_to_num`) first.")], where)
     return in_unit_range(arr, name, where, hint=hint) if unit_range else arr
 
@@ -159,8 +177,10 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
 def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT) -> Array:
     """``arr``, refused (:func:`refuse`) when it holds values outside [0, 1] (NaN
     passes: :func:`finite` refuses it); ``hint`` follows "must lie in [0, 1]"."""
-    return refuse(arr, [(jnp.any((arr < 0) | (arr > 1)), f"`{name}` must lie in [0, 1] {hint}.")],
-                  where)
+    xp = array_module(arr)
+    host = xp.asarray(arr)
+    return refuse(arr, [(xp.any((host < 0) | (host > 1)), f"`{name}` must lie in [0, 1] "
+                         f"{hint}.")], where)
 
 
 def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:

@@ -79,18 +79,20 @@ class Camera(eqx.Module):
         """``(is_bad, message)`` for each way the camera can have no image: every
         pixel would get the same ray, or the image would be flipped."""
         # NaN compares false here: non-finite values are the finiteness checks' to name
-        view = self.target - self.eye
+        xp = _checks.array_module(self.eye, self.target, self.up, self.fov, self.width)
+        eye, target, up = (xp.asarray(v) for v in (self.eye, self.target, self.up))
+        view = target - eye
         checks = [
-            (jnp.sum(view * view) == 0, "`eye` and `target` must differ (for "
+            (xp.sum(view * view) == 0, "`eye` and `target` must differ (for "
              "Camera.orbit: `distance` must be > 0)."),
-            (jnp.sum(jnp.cross(self.up, view) ** 2) == 0, "`up` must be non-zero and "
+            (xp.sum(xp.cross(up, view) ** 2) == 0, "`up` must be non-zero and "
              "not parallel to the view direction `target - eye`."),
         ]
         if self.projection == "perspective":
-            checks.append(((self.fov <= 0) | (self.fov >= 180),
-                           "`fov` must lie in (0, 180) degrees."))
+            fov = xp.asarray(self.fov)
+            checks.append(((fov <= 0) | (fov >= 180), "`fov` must lie in (0, 180) degrees."))
         else:
-            checks.append((self.width <= 0, "`width` must be > 0 (scene units)."))
+            checks.append((xp.asarray(self.width) <= 0, "`width` must be > 0 (scene units)."))
         return checks
 
     def _valid(self) -> "Camera":

@@ -28,6 +28,7 @@ the gradient volume, the ambient and opacity-scale volumes) followed by
 import math
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -201,29 +202,42 @@ def medium(
                          f"{background.shape}.")
     background = _checks.finite(background, "background", where)
     measured = composition == "importance"
-    gradient = regression_gradient(volume, spacing=spacing, size=3) \
-        if shader.needs_gradient or measured else None
-    if gradient is not None:
-        # normals need only its direction and the importance its scaled magnitude: over
-        # its largest component, a volume in tiny or huge units keeps its normals
-        # (|g|^2 would underflow or overflow, and safe_normalize give no normal)
-        peak = jnp.max(jnp.abs(gradient))
-        gradient = quotient(gradient, jnp.where(peak > 0, peak, jnp.ones_like(peak)))
     phong = Phong() if phong is None else phong
     if shader.needs_gradient:  # the lit shaders, which read the Phong coefficients
         phong = phong.checked()
-    classified = None
-    if classification == "pre":
-        color, alpha0 = transfer._rgba(volume)
-        classified = jnp.concatenate([alpha0[..., None] * color, alpha0[..., None]], axis=-1)
+    gradient, magnitude, classified = _shared_volumes(
+        volume, transfer, spacing, gradient=shader.needs_gradient or measured,
+        magnitude=measured, classified=classification == "pre")
     return Medium(
         volume=volume, transfer=transfer, spacing=spacing, step=step, shader=shader,
         compositor=comp, phong=phong, ambient=ambient, opacity_scale=opacity_scale,
         importance=(Importance() if importance is None else importance.checked())
         if measured else None,
-        background=background, gradient=gradient,
-        magnitude=normalized_gradient_magnitude(gradient) if measured else None,
+        background=background, gradient=gradient, magnitude=magnitude,
         classified=classified)
+
+
+@eqx.filter_jit
+def _shared_volumes(volume: Array, transfer: TransferFunction, spacing, *, gradient: bool,
+                    magnitude: bool, classified: bool
+                    ) -> tuple[Array | None, Array | None, Array | None]:
+    """The volumes :func:`medium` computes (each when asked for): the gradient (over its
+    largest component), its normalised magnitude and the pre-classified
+    ``(alpha0 c, alpha0)``; compiled once per structure, for eager calls."""
+    grad = mag = rgba = None
+    if gradient:
+        grad = regression_gradient(volume, spacing=spacing, size=3)
+        # normals need only its direction and the importance its scaled magnitude: over
+        # its largest component, a volume in tiny or huge units keeps its normals
+        # (|g|^2 would underflow or overflow, and safe_normalize give no normal)
+        peak = jnp.max(jnp.abs(grad))
+        grad = quotient(grad, jnp.where(peak > 0, peak, jnp.ones_like(peak)))
+    if magnitude:
+        mag = normalized_gradient_magnitude(grad)
+    if classified:
+        color, alpha0 = transfer._rgba(volume)
+        rgba = jnp.concatenate([alpha0[..., None] * color, alpha0[..., None]], axis=-1)
+    return grad, mag, rgba
 
 
 def march_view(shared: Medium, camera: Camera, focus: Array | None = None
@@ -232,19 +246,31 @@ def march_view(shared: Medium, camera: Camera, focus: Array | None = None
     :func:`medium` returns), with optional ``(H, W)`` ``focus`` weights; returns the
     ``(H, W, 4)`` image."""
     where = "volshade.render"
-    volume, transfer, spacing, comp = shared.volume, shared.transfer, shared.spacing, \
-        shared.compositor
-    dtype = volume.dtype
-    measured = shared.importance is not None
+    dtype = shared.volume.dtype
     if focus is not None:
         focus = _checks.finite(_checks.as_float_array(focus, "focus", where).astype(dtype),
                                "focus", where)
         if focus.shape != camera.image_shape:
             raise ValueError(f"{where}: `focus` must have the camera's image shape "
                              f"{camera.image_shape}, got {focus.shape}.")
-        if not measured:
+        if shared.importance is None:
             raise ValueError(f"{where}: `focus` weights need composition='importance'.")
+    # known degenerate values are refused now, with a ValueError; traced ones by the
+    # compiled march, at run time
+    _checks.refuse(camera, camera._degenerate(), "volshade.Camera", traced=False)
+    return _march_view(shared, camera, focus)
 
+
+@eqx.filter_jit
+def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
+    """:func:`march_view` after its checks, compiled once per structure: called
+    eagerly (a notebook's ``vs.render(scene, camera)``), the march would otherwise be
+    traced and compiled again on every call (its loop body is a new closure each time)
+    and every operation around it compiled on its own."""
+    volume, transfer, spacing, comp = shared.volume, shared.transfer, shared.spacing, \
+        shared.compositor
+    dtype = volume.dtype
+    measured = shared.importance is not None
     half_extent, scale = box_half_extent(volume.shape, spacing)
     half_extent = half_extent.astype(dtype)
     origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())

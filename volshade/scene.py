@@ -337,8 +337,9 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
                 return _checks.refuse(leaf, [(bad, message)], "volshade.render")
             if not eqx.is_inexact_array(leaf) or leaf is scene.volume:
                 return leaf
-            return _checks.refuse(leaf, [(jnp.any(_checks.non_finite(leaf, minus_inf=minus_inf)),
-                                          message)], "volshade.render")
+            bad = _checks.non_finite(leaf, minus_inf=minus_inf)
+            return _checks.refuse(leaf, [(_checks.array_module(bad).any(bad), message)],
+                                  "volshade.render")
 
         return jax.tree_util.tree_map_with_path(check, tree)
 
