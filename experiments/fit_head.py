@@ -64,6 +64,9 @@ BOUNDS = {"lao.radius": (2.0 / voxel, 24.0 / voxel), "importance.intensity": (0.
 
 
 def scene_with(values):
+    # float32 arrays, not Python floats: these leaves then have the type of the fitted
+    # values and of the radii set below, and every render shares one compiled program
+    values = {path: jnp.asarray(value, jnp.float32) for path, value in values.items()}
     return vs.Scene(
         volume=head, transfer=vs.transfer.preset("head"), spacing=spacing, step=voxel / 2,
         shading="phong", phong=vs.Phong(ambient=0.8, diffuse=0.45, specular=0.1),

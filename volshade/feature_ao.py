@@ -74,6 +74,7 @@ import math
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -193,7 +194,7 @@ def merge_feature_ao(
         0.5
     """
     where = "volshade.merge_feature_ao"
-    operator = _checks.option(merge, MERGES, "merge", where)
+    _checks.option(merge, MERGES, "merge", where)
     ao = _checks.as_float_array(ao, "ao", where)
     opacities = _checks.as_float_array(opacities, "opacities", where)
     _checks.check_ndim(ao, 4, "ao", where, "(F, D, H, W)")
@@ -203,7 +204,14 @@ def merge_feature_ao(
     ao = _checks.finite(ao, "ao", where, unit_range=True,
                         hint="(AO volumes, 1 = unoccluded)")
     opacities = _checks.finite(opacities, "opacities", where, unit_range=True)
-    return operator(ao, opacities.astype(ao.dtype))
+    return _merge(ao, opacities.astype(ao.dtype), merge)
+
+
+@functools.partial(jax.jit, static_argnames="merge")
+def _merge(ao: Array, opacities: Array, merge: str) -> Array:
+    """``MERGES[merge]``, compiled once per shape: eagerly, each of its operations
+    would be compiled on its own."""
+    return MERGES[merge](ao, opacities)
 
 
 def feature_ao(
