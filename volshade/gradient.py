@@ -18,6 +18,8 @@ $f(\mathbf{x} + k) - f(\mathbf{x} - k)$, so a constant neighbourhood gives an
 exactly zero gradient.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -107,6 +109,16 @@ def regression_gradient(
     """
     where = "volshade.gradient.regression_gradient"
     volume = _checks.volume(volume, "volume", where)
+    regression_kernel(size, spacing=spacing, weighting=weighting)  # its checks, at once
+    return _regression_gradient(volume, size, _checks.spacing(spacing, where), weighting)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, float],
+                         weighting: str) -> Array:
+    """:func:`regression_gradient` after its checks: one compiled program per shape and
+    setting (eagerly, each of its hundreds of shifted differences would be dispatched
+    on its own)."""
     kernel = regression_kernel(size, spacing=spacing, weighting=weighting)
     half = size // 2
     padded = jnp.pad(volume, half, mode="edge")
