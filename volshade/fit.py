@@ -423,11 +423,6 @@ def _relative_loss(u: list[Array], args: tuple[_Problem, Array]) -> Array:
     return _relative_loss_by_reverse(args, u)
 
 
-@eqx.filter_jit
-def _measured_loss(problem: _Problem, u: list[Array]) -> Array:
-    return problem.loss(u)
-
-
 def _quiet(**kwargs) -> None:
     return None
 
@@ -568,7 +563,17 @@ def fit(
                        weights=tuple(w for _, _, w in views),
                        where=tuple(where), bounds=tuple(named.values()))
     u0 = [_from_bounded(x, named[p], p) for x, p in zip(initial, paths, strict=True)]
-    initial_loss = _measured_loss(problem, u0)
+    u, loss, initial_loss, steps, result = _solve(problem, u0, solver, max_steps, throw)
+    fitted, values = problem.place(u)
+    return Fit(scene=fitted, values=dict(zip(paths, values, strict=True)), loss=loss,
+               initial_loss=initial_loss, steps=steps, result=result)
+
+
+@eqx.filter_jit
+def _solve(problem: _Problem, u0: list[Array], solver, max_steps: int, throw: bool):
+    """The solve, with the loss before and after it, as one compiled program (the
+    losses compiled apart cost a second compile of the render: 2-3 s on a CPU)."""
+    initial_loss = problem.loss(u0)
     solver = _default_solver(initial_loss.dtype) if solver is None else solver
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
         solution = optx.least_squares(_residuals, solver, u0, args=problem,
@@ -580,7 +585,5 @@ def fit(
         scale = jnp.where(initial_loss > 0, initial_loss, 1)
         solution = optx.minimise(_relative_loss, solver, u0, args=(problem, scale),
                                  max_steps=max_steps, throw=throw)
-    fitted, values = problem.place(solution.value)
-    return Fit(scene=fitted, values=dict(zip(paths, values, strict=True)),
-               loss=_measured_loss(problem, solution.value), initial_loss=initial_loss,
-               steps=solution.stats["num_steps"], result=solution.result)
+    return (solution.value, problem.loss(solution.value), initial_loss,
+            solution.stats["num_steps"], solution.result)
