@@ -598,15 +598,13 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
     dirs = dirs.astype(dtype)
     message = ("`directions` holds a zero or non-finite vector; every direction must be a "
                "non-zero finite 3-vector.")
-    if _checks.array_module(dirs) is np:  # known directions: checked and scaled on the host
-        host = np.asarray(dirs)
-        norm = np.linalg.norm(host, axis=-1, keepdims=True)
-        _checks.refuse(dirs, [(~np.all(np.isfinite(host)) | np.any(norm == 0), message)], where)
-        return jnp.asarray(host / norm, dtype)
-    norm = safe_norm(dirs, axis=-1, keepdims=True)
-    dirs = _checks.refuse(dirs, [(~jnp.all(jnp.isfinite(dirs)) | jnp.any(norm == 0), message)],
+    xp = _checks.array_module(dirs)  # known directions: checked and scaled on the host
+    dirs = xp.asarray(dirs)
+    norm = np.linalg.norm(dirs, axis=-1, keepdims=True) if xp is np else \
+        safe_norm(dirs, axis=-1, keepdims=True)
+    dirs = _checks.refuse(dirs, [(~xp.all(xp.isfinite(dirs)) | xp.any(norm == 0), message)],
                           where)
-    return dirs / jnp.where(norm == 0, 1, norm)
+    return jnp.asarray(dirs / xp.where(norm == 0, 1, norm), dtype)
 
 
 def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
