@@ -171,8 +171,9 @@ def test_modules_built_with_a_batch_axis_vmap():
     for i in range(2):
         one = vs.Phong(**{k: getattr(batched, k)[i] for k in
                           ("ambient", "diffuse", "specular", "shininess")})
-        # float32: the batched program may round differently (an ulp)
-        np.testing.assert_allclose(images[i], render(one), rtol=1e-6, atol=1e-12)
+        # float32: the batched program rounds differently (up to 3e-7 here; either is
+        # within 1.5e-6 of the float64 render)
+        np.testing.assert_allclose(images[i], render(one), rtol=1e-6, atol=1e-6)
     params = vs.ObscuranceParams(d_max=[3.0, 5.0], low=[0.0, 0.1], high=[1.0, 0.9], level=0)
     out = eqx.filter_jit(jax.vmap(lambda p: p(VOL, TF)))(params)
     np.testing.assert_allclose(out[1], vs.ObscuranceParams(d_max=5.0, low=0.1, high=0.9,

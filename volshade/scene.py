@@ -322,28 +322,31 @@ def _minus_inf_allowed(tree, prefix: str) -> set[str]:
 def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
     """Refuse NaN/inf in any floating-point leaf of the scene or camera(s) (naming it), so a
     bad parameter raises instead of rendering a NaN image. The volume has its own check;
-    leaves a module declares in ``may_be_minus_inf`` may also be -inf."""
-
-    def checked(tree, prefix):
-        allowed = _minus_inf_allowed(tree, prefix)
-
-        def check(path, leaf):
-            name = prefix + jax.tree_util.keystr(path)
-            minus_inf = name in allowed
-            message = (f"`{name}` contains NaN or inf; every scene and camera parameter "
-                       f"must be finite{' (or -inf)' if minus_inf else ''}.")
-            if isinstance(leaf, float):  # a static leaf (e.g. set with eqx.tree_at)
-                bad = not (math.isfinite(leaf) or (minus_inf and leaf == -math.inf))
-                return _checks.refuse(leaf, [(bad, message)], "volshade.render")
-            if not eqx.is_inexact_array(leaf) or leaf is scene.volume:
-                return leaf
+    leaves a module declares in ``may_be_minus_inf`` may also be -inf. The traced leaves
+    are checked together (one error site, :func:`volshade._checks.refuse`)."""
+    flat, treedef = jax.tree_util.tree_flatten_with_path((scene, camera))
+    allowed = (_minus_inf_allowed(scene, "scene") | _minus_inf_allowed(camera, "camera"))
+    leaves = [leaf for _, leaf in flat]
+    where, checks = [], []
+    for i, (path, leaf) in enumerate(flat):
+        # the first key picks the scene or the camera(s) of the (scene, camera) pair
+        name = ("scene", "camera")[path[0].idx] + jax.tree_util.keystr(path[1:])
+        minus_inf = name in allowed
+        message = (f"`{name}` contains NaN or inf; every scene and camera parameter "
+                   f"must be finite{' (or -inf)' if minus_inf else ''}.")
+        if isinstance(leaf, float):  # a static leaf (e.g. set with eqx.tree_at)
+            bad = not (math.isfinite(leaf) or (minus_inf and leaf == -math.inf))
+        elif eqx.is_inexact_array(leaf) and leaf is not scene.volume:
             bad = _checks.non_finite(leaf, minus_inf=minus_inf)
-            return _checks.refuse(leaf, [(_checks.array_module(bad).any(bad), message)],
-                                  "volshade.render")
-
-        return jax.tree_util.tree_map_with_path(check, tree)
-
-    return checked(scene, "scene"), checked(camera, "camera")
+            bad = _checks.array_module(bad).any(bad)
+        else:
+            continue
+        where.append(i)
+        checks.append((bad, message))
+    refused = _checks.refuse([leaves[i] for i in where], checks, "volshade.render")
+    for i, leaf in zip(where, refused, strict=True):
+        leaves[i] = leaf
+    return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
 def _check_cameras(camera: Any, where: str = "volshade.render") -> None:
