@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
+from volshade import _checks
 from volshade.clip import SphereClip, affected_mask
 from volshade.importance import Importance, focus_weights, sample_importance
 from volshade.obscurance import obscurance_shading, threshold
@@ -80,3 +81,21 @@ def test_sample_importance_refuses_features_it_would_clip():
         for fn in (sample_importance, jax.jit(sample_importance)):
             with pytest.raises(Exception, match=f"`{name}` must"):
                 jax.block_until_ready(fn(imp, **features))
+
+
+def test_traced_checks_of_one_call_report_the_first_that_fails():
+    # one error site for all the traced checks of a call: its message is that of the
+    # first check that holds, under jit and under vmap (from any element of the batch)
+    def checked(x):
+        return _checks.refuse(x, [(x[0] < 0, "first"), (x[1] < 0, "second"),
+                                  (x[2] < 0, "third")], "f")
+
+    for x, message in (([1, -1, -1], "second"), ([-1, 1, -1], "first"), ([1, 1, -1], "third")):
+        with pytest.raises(Exception, match=f"f: {message}"):
+            jax.block_until_ready(jax.jit(checked)(jnp.asarray(x, float)))
+        with pytest.raises(ValueError, match=f"f: {message}"):  # eager: at once
+            checked(jnp.asarray(x, float))
+    batch = jnp.asarray([[1.0, 1.0, 1.0], [1.0, 1.0, -1.0]])
+    with pytest.raises(Exception, match="f: third"):
+        jax.block_until_ready(jax.jit(jax.vmap(checked))(batch))
+    assert jax.jit(jax.vmap(checked))(jnp.abs(batch)).tolist() == jnp.abs(batch).tolist()
