@@ -317,8 +317,7 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
                 shared.importance,
                 {"intensity": value, "extinction": tau, "optical_depth": depth,
                  "gradient_magnitude": _trilinear(shared.magnitude, index, "nearest")},
-                {"normal": -grad, "view": eye_dir, "light": eye_dir}, focus,
-                check_finite=False)
+                {"normal": -grad, "view": eye_dir, "light": eye_dir}, focus)
             shaded = shaded * darkening[..., None]
             depth = depth + tau * seg * scale
         state = comp.step(state, Sample(alpha[..., None] * shaded, alpha, sample_imp))
