@@ -38,7 +38,7 @@ def _image_shape(shape) -> tuple:
 def _orbit_pose(azimuth: Array, elevation: Array, target: Array, distance: Array
                 ) -> tuple[Array, Array]:
     """:meth:`Camera.orbit`'s eye and up vector (degrees in): one compiled program,
-    where an eager call compiled each of its 20 operations (the first call 0.8 s)."""
+    where an eager call compiled each of its operations (the first call 0.8 s)."""
     a, e = jnp.deg2rad(azimuth), jnp.deg2rad(elevation)
     direction = jnp.stack([jnp.sin(e), jnp.cos(e) * jnp.cos(a), jnp.cos(e) * jnp.sin(a)])
     # Looking straight along d, "up" must come from the azimuth instead.
