@@ -91,11 +91,23 @@ def array_module(*arrays: Any):
     return np
 
 
+def for_check(*arrays: Any) -> tuple:
+    """``(xp, *arrays)``: the module to compute a check with (:func:`array_module`) and
+    ``arrays`` as its arrays."""
+    xp = array_module(*arrays)
+    return (xp, *(xp.asarray(x) for x in arrays))
+
+
+def not_positive(x: Any) -> Array:
+    """Whether ``x`` holds a value that is NaN, inf or <= 0 (a ``bad`` for :func:`refuse`)."""
+    xp, x = for_check(x)
+    return ~xp.all(xp.isfinite(x) & (x > 0))
+
+
 def non_finite(x: Any, *, minus_inf: bool = False) -> Array:
     """Where ``x`` is NaN or inf; with ``minus_inf``, -inf is a value, not an error (an
     importance of -inf means "no background")."""
-    xp = array_module(x)
-    x = xp.asarray(x)
+    xp, x = for_check(x)
     return ~(xp.isfinite(x) | ((x == -np.inf) if minus_inf else False))
 
 
@@ -179,8 +191,7 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
            hint: str = _OPACITY_HINT) -> Array:
     """``arr``, refused (:func:`refuse`) when it holds NaN or inf, or (``unit_range``)
     values outside [0, 1] (:func:`in_unit_range`)."""
-    xp = array_module(arr)
-    arr = refuse(arr, [(~xp.all(xp.isfinite(arr)), f"`{name}` contains NaN or inf; clean "
+    arr = refuse(arr, [(non_finite(arr).any(), f"`{name}` contains NaN or inf; clean "
                         f"the data (e.g. `jnp.nan_to_num`) first.")], where)
     return in_unit_range(arr, name, where, hint=hint) if unit_range else arr
 
@@ -188,8 +199,7 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
 def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT) -> Array:
     """``arr``, refused (:func:`refuse`) when it holds values outside [0, 1] (NaN
     passes: :func:`finite` refuses it); ``hint`` follows "must lie in [0, 1]"."""
-    xp = array_module(arr)
-    host = xp.asarray(arr)
+    xp, host = for_check(arr)
     return refuse(arr, [(xp.any((host < 0) | (host > 1)), f"`{name}` must lie in [0, 1] "
                          f"{hint}.")], where)
 

@@ -112,8 +112,8 @@ class Camera(eqx.Module):
         """``(is_bad, message)`` for each way the camera can have no image: every
         pixel would get the same ray, or the image would be flipped."""
         # NaN compares false here: non-finite values are the finiteness checks' to name
-        xp = _checks.array_module(self.eye, self.target, self.up, self.fov, self.width)
-        eye, target, up = (xp.asarray(v) for v in (self.eye, self.target, self.up))
+        xp, eye, target, up, fov, width = _checks.for_check(self.eye, self.target, self.up,
+                                                            self.fov, self.width)
         view = target - eye
         checks = [
             (xp.sum(view * view) == 0, "`eye` and `target` must differ (for "
@@ -122,10 +122,9 @@ class Camera(eqx.Module):
              "not parallel to the view direction `target - eye`."),
         ]
         if self.projection == "perspective":
-            fov = xp.asarray(self.fov)
             checks.append(((fov <= 0) | (fov >= 180), "`fov` must lie in (0, 180) degrees."))
         else:
-            checks.append((xp.asarray(self.width) <= 0, "`width` must be > 0 (scene units)."))
+            checks.append((width <= 0, "`width` must be > 0 (scene units)."))
         return checks
 
     def _valid(self) -> "Camera":
@@ -177,8 +176,7 @@ class Camera(eqx.Module):
                              f"{leaves['target'].shape}.")
         for name, value in leaves.items():
             # traced values: the render refuses a non-finite eye or target, at run time
-            xp = _checks.array_module(value)
-            _checks.refuse(value, [(~xp.all(xp.isfinite(xp.asarray(value))),
+            _checks.refuse(value, [(_checks.non_finite(value).any(),
                                     f"`{name}` must be finite, got {given[name]!r}.")],
                            where, traced=False)
         a, e, target, length, fov, width = leaves.values()
@@ -226,8 +224,7 @@ class Camera(eqx.Module):
         if view.shape != (3,):
             raise ValueError(f"{where}: `view` must be a (3,) direction, got shape "
                              f"{view.shape}.")
-        xp = _checks.array_module(view)
-        host = xp.asarray(view)
+        xp, host = _checks.for_check(view)
         view = _checks.refuse(view, [(~xp.all(xp.isfinite(host)) | ~xp.any(host != 0),
                                       "`view` must be a finite, non-zero (3,) direction.")],
                               where)

@@ -51,8 +51,7 @@ _REACH_MARGIN, _REACH_RELATIVE_MARGIN = 1e-3, 64
 
 def _orthonormal(rotation: Array) -> Array:
     """Whether ``rotation`` is a rotation (or reflection) matrix, to rounding."""
-    xp = _checks.array_module(rotation)
-    rotation = xp.asarray(rotation)
+    xp, rotation = _checks.for_check(rotation)
     return xp.max(xp.abs(rotation.T @ rotation - xp.eye(3))) < 1e-5
 
 
@@ -65,9 +64,8 @@ def _pose(center, rotation, where: str) -> tuple[Array, Array]:
     if rotation.shape != (3, 3):
         raise ValueError(f"{where}: `rotation` must be a 3x3 rotation matrix, got shape "
                          f"{rotation.shape}.")
-    xp = _checks.array_module(center)
-    _checks.refuse(center, [(~xp.all(xp.isfinite(xp.asarray(center))), "`center` must be "
-                             "finite (voxels).")], where, traced=False)
+    _checks.refuse(center, [(_checks.non_finite(center).any(), "`center` must be finite "
+                             "(voxels).")], where, traced=False)
     _checks.refuse(rotation, [(~_orthonormal(rotation), "`rotation` must be orthonormal (a "
                                "rotation matrix): the signed distance is exact only then.")],
                    where, traced=False)
@@ -76,9 +74,7 @@ def _pose(center, rotation, where: str) -> tuple[Array, Array]:
 
 def _positive(value, name: str, where: str) -> Array:
     value = _checks.float_leaf(value, name, where)
-    xp = _checks.array_module(value)
-    host = xp.asarray(value)
-    _checks.refuse(value, [(~xp.all(xp.isfinite(host) & (host > 0)),
+    _checks.refuse(value, [(_checks.not_positive(value),
                             f"`{name}` must be finite and > 0 (voxels).")], where, traced=False)
     return value
 
@@ -212,8 +208,7 @@ def _checked(clip: Clip) -> Clip:
     """``clip`` with its traced leaves checked at run time (known ones were checked when
     it was built): finite, sizes > 0, an orthonormal rotation."""
     leaves = [clip.center, clip.rotation, *(getattr(clip, name) for name in clip.sizes)]
-    xp = _checks.array_module(leaves)
-    leaves = [xp.asarray(x) for x in leaves]
+    xp, *leaves = _checks.for_check(*leaves)
     finite = functools.reduce(xp.logical_and, [xp.all(xp.isfinite(x)) for x in leaves])
     positive = functools.reduce(xp.logical_and, [xp.all(x > 0) for x in leaves[2:]],
                                 xp.asarray(True))
@@ -300,9 +295,7 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
     where = "volshade.affected_mask"
     clip = _clip(clip, where)
     radius = _checks.scalar(radius, "radius", where)
-    xp = _checks.array_module(radius)
-    host = xp.asarray(radius)
-    radius = _checks.refuse(radius, [(~(xp.isfinite(host) & (host > 0)),
+    radius = _checks.refuse(radius, [(_checks.not_positive(radius),
                                       "`radius` must be a finite number > 0 (voxels).")], where)
     return _compiled_reach(_shape_of(shape, where), _checked(clip), radius)
 

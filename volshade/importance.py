@@ -200,9 +200,8 @@ def _feature(value: ArrayLike, name: str, where: str, *, check: bool = True) -> 
         return v
     v = _checks.finite(v, name, where)
     if name in ("extinction", "optical_depth"):
-        xp = _checks.array_module(v)
-        return _checks.refuse(v, [(xp.any(xp.asarray(v) < 0), f"`{name}` must be >= 0.")],
-                              where)
+        xp, host = _checks.for_check(v)
+        return _checks.refuse(v, [(xp.any(host < 0), f"`{name}` must be >= 0.")], where)
     if name == "gradient_magnitude":
         return _checks.in_unit_range(v, name, where, hint="(normalise it by the volume's "
                                      "maximum: normalized_gradient_magnitude)")
@@ -239,10 +238,9 @@ def silhouetteness(
     m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
     exponent, start, end = (_checks.as_float_array(x, k, where) for x, k in
                             ((exponent, "exponent"), (start, "start"), (end, "end")))
-    xp = _checks.array_module(exponent, start, end)
-    p, a, b = (xp.asarray(x) for x in (exponent, start, end))
+    xp, a, b = _checks.for_check(start, end)
     m_g = _checks.refuse(m_g, [
-        (~xp.all(xp.isfinite(p) & (p > 0)), "`exponent` must be a finite number > 0."),
+        (_checks.not_positive(exponent), "`exponent` must be a finite number > 0."),
         (~xp.all(xp.isfinite(a) & xp.isfinite(b) & (a < b)),
          "`start` and `end` must be finite, with `start` < `end` (the smoothstep's edges).")],
         where)
@@ -291,11 +289,8 @@ def lighting_importance(
                  for x, k in ((specular_exponent, "specular_exponent"),
                               (diffuse_exponent, "diffuse_exponent"),
                               (gradient_exponent, "gradient_exponent"))}
-    xp = _checks.array_module(*exponents.values())
-    m_g = _checks.refuse(m_g, [(~xp.all(xp.isfinite(x) & (x > 0)),
-                                f"`{k}` must be a finite number > 0.")
-                               for k, x in ((k, xp.asarray(x)) for k, x in exponents.items())],
-                         where)
+    m_g = _checks.refuse(m_g, [(_checks.not_positive(x), f"`{k}` must be a finite number > 0.")
+                               for k, x in exponents.items()], where)
     return _compiled_lighting_importance(n, v, l, m_g, *exponents.values())
 
 
@@ -552,9 +547,7 @@ def focus_weights(
                              where)
     if dtype is None:
         dtype = jnp.result_type(center, radius, inside, outside)
-    xp = _checks.array_module(radius)
-    r = xp.asarray(radius)
-    radius = _checks.refuse(radius.astype(dtype), [(~(r > 0) | ~xp.isfinite(r),
+    radius = _checks.refuse(radius.astype(dtype), [(_checks.not_positive(radius),
                                                     "`radius` must be a finite number > 0 "
                                                     "pixels.")], where)
     return _focus_weights(fn, (h, w), jnp.dtype(dtype), center, radius, inside, outside)

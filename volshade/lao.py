@@ -598,8 +598,7 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
     dirs = dirs.astype(dtype)
     message = ("`directions` holds a zero or non-finite vector; every direction must be a "
                "non-zero finite 3-vector.")
-    xp = _checks.array_module(dirs)  # known directions: checked and scaled on the host
-    dirs = xp.asarray(dirs)
+    xp, dirs = _checks.for_check(dirs)  # known directions: checked and scaled on the host
     norm = np.linalg.norm(dirs, axis=-1, keepdims=True) if xp is np else \
         safe_norm(dirs, axis=-1, keepdims=True)
     dirs = _checks.refuse(dirs, [(~xp.all(xp.isfinite(dirs)) | xp.any(norm == 0), message)],

@@ -327,7 +327,7 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
     flat, treedef = jax.tree_util.tree_flatten_with_path((scene, camera))
     allowed = (_minus_inf_allowed(scene, "scene") | _minus_inf_allowed(camera, "camera"))
     leaves = [leaf for _, leaf in flat]
-    where, checks = [], []
+    checked, checks = [], []
     for i, (path, leaf) in enumerate(flat):
         # the first key picks the scene or the camera(s) of the (scene, camera) pair
         name = ("scene", "camera")[path[0].idx] + jax.tree_util.keystr(path[1:])
@@ -337,14 +337,13 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
         if isinstance(leaf, float):  # a static leaf (e.g. set with eqx.tree_at)
             bad = not (math.isfinite(leaf) or (minus_inf and leaf == -math.inf))
         elif eqx.is_inexact_array(leaf) and leaf is not scene.volume:
-            bad = _checks.non_finite(leaf, minus_inf=minus_inf)
-            bad = _checks.array_module(bad).any(bad)
+            bad = _checks.non_finite(leaf, minus_inf=minus_inf).any()
         else:
             continue
-        where.append(i)
+        checked.append(i)
         checks.append((bad, message))
-    refused = _checks.refuse([leaves[i] for i in where], checks, "volshade.render")
-    for i, leaf in zip(where, refused, strict=True):
+    refused = _checks.refuse([leaves[i] for i in checked], checks, "volshade.render")
+    for i, leaf in zip(checked, refused, strict=True):
         leaves[i] = leaf
     return jax.tree_util.tree_unflatten(treedef, leaves)
 

@@ -84,18 +84,17 @@ class TransferFunction(eqx.Module):
     def _problems(self) -> list[tuple[Array, str]]:
         """``(is_bad, message)`` for the control values: points finite and strictly
         increasing, colours and opacities in [0, 1]."""
-        xp = _checks.array_module(self.points, self.colors, self.opacities)
-        points = xp.asarray(self.points)
+        xp, points, colors, opacities = _checks.for_check(self.points, self.colors,
+                                                          self.opacities)
 
         def outside(x):
-            x = xp.asarray(x)
             return ~((x >= 0) & (x <= 1))
 
         return [
             (xp.any(xp.diff(points) <= 0) | ~xp.all(xp.isfinite(points)),
              "`points` must be finite and strictly increasing (sort the control points; "
              "a fit should keep their order, e.g. through cumulative positive gaps)."),
-            (xp.any(outside(self.colors)) | xp.any(outside(self.opacities)),
+            (xp.any(outside(colors)) | xp.any(outside(opacities)),
              "`colors` and `opacities` must lie in [0, 1] (a fit should keep them there, "
              "e.g. through a sigmoid)."),
         ]
