@@ -99,3 +99,30 @@ def test_traced_checks_of_one_call_report_the_first_that_fails():
     with pytest.raises(Exception, match="f: third"):
         jax.block_until_ready(jax.jit(jax.vmap(checked))(batch))
     assert jax.jit(jax.vmap(checked))(jnp.abs(batch)).tolist() == jnp.abs(batch).tolist()
+
+
+@pytest.mark.parametrize("size", [3, 20], ids=["host", "compiled"])
+def test_volume_checks_give_the_same_verdict_eagerly_traced_and_closed_over(size):
+    # an eager check of a small array runs in NumPy, of a large one (20^3 > 4096 values)
+    # as one compiled program; traced, and closed over by a jit (where the program is
+    # staged into the trace), it is a run-time error: the same message each way, NaN
+    # before the range
+    def check(x):
+        return _checks.finite(x, "alpha", "f", unit_range=True)
+
+    good = jnp.full((size,) * 3, 0.5)
+    cases = ((good.at[1, 1, 1].set(jnp.nan).at[0, 0, 0].set(2.0), "contains NaN or inf"),
+             (good.at[1, 1, 1].set(-jnp.inf), "contains NaN or inf"),
+             (good.at[1, 1, 1].set(1.5), r"must lie in \[0, 1\]"),
+             (good.at[1, 1, 1].set(-1e-30), r"must lie in \[0, 1\]"))
+    for bad, message in cases:
+        with pytest.raises(ValueError, match=f"f: `alpha` {message}"):
+            check(bad)
+        with pytest.raises(Exception, match=f"f: `alpha` {message}"):
+            jax.block_until_ready(jax.jit(check)(bad))
+        with pytest.raises(Exception, match=f"f: `alpha` {message}"):
+            jax.block_until_ready(jax.jit(lambda bad=bad: check(bad))())
+    # and a clean volume passes each way, unchanged
+    for out in (check(good), jax.jit(check)(good), jax.jit(lambda: check(good))(),
+                jax.jit(jax.vmap(check))(good[None])[0]):
+        assert jnp.array_equal(out, good)

@@ -191,17 +191,43 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
            hint: str = _OPACITY_HINT) -> Array:
     """``arr``, refused (:func:`refuse`) when it holds NaN or inf, or (``unit_range``)
     values outside [0, 1] (:func:`in_unit_range`)."""
-    arr = refuse(arr, [(non_finite(arr).any(), f"`{name}` contains NaN or inf; clean "
-                        f"the data (e.g. `jnp.nan_to_num`) first.")], where)
-    return in_unit_range(arr, name, where, hint=hint) if unit_range else arr
+    flags = _value_flags(arr, finite=True, unit_range=unit_range)
+    checks = [(flags[0], f"`{name}` contains NaN or inf; clean the data (e.g. "
+                         f"`jnp.nan_to_num`) first.")]
+    if unit_range:
+        checks.append((flags[1], f"`{name}` must lie in [0, 1] {hint}."))
+    return refuse(arr, checks, where)
 
 
 def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT) -> Array:
     """``arr``, refused (:func:`refuse`) when it holds values outside [0, 1] (NaN
     passes: :func:`finite` refuses it); ``hint`` follows "must lie in [0, 1]"."""
+    (outside,) = _value_flags(arr, finite=False, unit_range=True)
+    return refuse(arr, [(outside, f"`{name}` must lie in [0, 1] {hint}.")], where)
+
+
+def _value_flags(arr: Any, *, finite: bool, unit_range: bool) -> list:
+    """Whether ``arr`` holds NaN or inf (``finite``) and values outside [0, 1]
+    (``unit_range``; NaN is not outside), as ``bad``s for :func:`refuse`. A large
+    concrete array (a volume passed to an eager call) is checked by one compiled
+    program: op by op, each comparison and reduction compiled a program of its own for
+    every new shape and dtype (seven for the two checks of an opacity volume)."""
+    if array_module(arr) is jnp and not isinstance(arr, jax.core.Tracer):
+        flags = _compiled_value_flags(jnp.asarray(arr), finite, unit_range)
+        known = concrete(flags)  # None when a trace stages the call (a closed-over volume)
+        return list(flags if known is None else known)
     xp, host = for_check(arr)
-    return refuse(arr, [(xp.any((host < 0) | (host > 1)), f"`{name}` must lie in [0, 1] "
-                         f"{hint}.")], where)
+    return _flags_of(xp, host, finite, unit_range)
+
+
+def _flags_of(xp, x, finite: bool, unit_range: bool) -> list:
+    return ([~xp.all(xp.isfinite(x))] if finite else []) + \
+        ([xp.any((x < 0) | (x > 1))] if unit_range else [])
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _compiled_value_flags(x: Array, finite: bool, unit_range: bool) -> Array:
+    return jnp.stack(_flags_of(jnp, x, finite, unit_range))
 
 
 def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:

@@ -675,24 +675,25 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
                              f"({max_radius}); raise `max_radius`.")
     radius = _scalar(radius, "radius", dtype, where)
     offset = _scalar(offset, "offset", dtype, where)
+    # known values were checked above, in NumPy; these checks are for traced ones
+    xp, r, a = _checks.for_check(radius, offset)
     alpha = _checks.refuse(alpha, [
-        (~(offset >= 0) | ~jnp.isfinite(radius),
-         "`offset` must be >= 0 and `radius` finite (voxels)."),
-        (~(radius > offset), "`radius` must be > `offset`; increase the radius or lower the "
-                             "offset."),
+        (~(a >= 0) | ~xp.isfinite(r), "`offset` must be >= 0 and `radius` finite (voxels)."),
+        (~(r > a), "`radius` must be > `offset`; increase the radius or lower the offset."),
         *([] if max_radius is None else [
-            (radius > max_radius, f"`radius` exceeds `max_radius` ({max_radius}); raise "
-                                  f"`max_radius`.")])], where)
+            (r > max_radius, f"`radius` exceeds `max_radius` ({max_radius}); raise "
+                             f"`max_radius`.")])], where)
 
     if weights is None:
-        weights = jnp.full((n_dirs,), 1 / n_dirs, dtype)
+        weights = jnp.asarray(np.full((n_dirs,), 1 / n_dirs), dtype)
     else:
         weights = _weights_array(weights, n_dirs, where).astype(dtype)
-        total = jnp.sum(weights)
+        xp, w = _checks.for_check(weights)
+        total = xp.sum(w)
         weights = _checks.refuse(
-            weights, [(~jnp.all(jnp.isfinite(weights)) | jnp.any(weights < 0) | ~(total > 0),
+            weights, [(~xp.all(xp.isfinite(w)) | xp.any(w < 0) | ~(total > 0),
                        "`weights` must be finite, >= 0 and not all zero.")], where)
-        weights = weights / jnp.where(total > 0, total, 1)
+        weights = weights / jnp.asarray(xp.where(total > 0, total, 1), weights.dtype)
 
     bound = max_radius if max_radius is not None else r_value
     # a padding as wide as the (brick-aligned) volume makes clamped reads land in zeros
@@ -896,13 +897,14 @@ class LocalAmbientOcclusion(eqx.Module):
         self.offset = _checks.float_leaf(offset, "offset", where).astype(float)
         # checked here when known, since the default max_radius is derived from it
         # (lao checks traced values again at run time)
-        _checks.refuse(self.radius, [(~(jnp.isfinite(self.radius) & (self.radius > 0)),
+        xp, r, a = _checks.for_check(self.radius, self.offset)
+        _checks.refuse(self.radius, [(_checks.not_positive(r),
                                       f"`radius` must be a finite number > 0 (voxels), got "
                                       f"{radius!r}.")], where, traced=False)
         _checks.refuse(self.offset, [
-            (~(jnp.isfinite(self.offset) & (self.offset >= 0)),
+            (~xp.all(xp.isfinite(a) & (a >= 0)),
              f"`offset` must be a finite number >= 0 (voxels), got {offset!r}."),
-            (~(self.radius > self.offset),
+            (~xp.all(r > a),
              f"`radius` ({radius!r}) must be > `offset` ({offset!r}); increase the radius "
              f"or lower the offset (default 1 voxel).")], where, traced=False)
         # the options lao() checks, checked here too: stored unchecked, they would fail
@@ -923,7 +925,7 @@ class LocalAmbientOcclusion(eqx.Module):
                            else _checks.positive_int(brick_size, "brick_size", where))
         if max_radius is not None:
             max_radius = _checks.positive_float(max_radius, "max_radius", where)
-            _checks.refuse(self.radius, [(self.radius > max_radius,
+            _checks.refuse(self.radius, [(xp.any(r > max_radius),
                                           f"`radius` ({radius!r}) exceeds `max_radius` "
                                           f"({max_radius}); raise `max_radius`.")],
                            where, traced=False)
