@@ -135,7 +135,15 @@ def saliency(
                          f"got {arr.shape}; for a batch, use `jax.vmap`.")
     grads = [regression_gradient(ch, spacing=spacing, size=size, weighting=weighting)
              for ch in channels]
-    return gradient_magnitude(jnp.concatenate(grads, axis=-1), scaled=True)
+    return _scaled_magnitude(grads)
+
+
+@jax.jit
+def _scaled_magnitude(gradients: list[Array]) -> Array:
+    """Eq. 4's magnitude of the channels' gradients, scaled to [0, 1], as one compiled
+    program (op by op, an eager call compiled about a dozen: first :func:`saliency` of
+    a 32^3 volume 1.2 s, now 0.7-0.9 s)."""
+    return gradient_magnitude(jnp.concatenate(gradients, axis=-1), scaled=True)
 
 
 _VISIBILITY = {
