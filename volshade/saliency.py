@@ -441,8 +441,7 @@ def modulate_opacity(
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same shape, got "
                          f"{saliency.shape} and {opacity.shape}.")
-    factor = _opacity_factor(saliency, threshold, multiply, boost_top, where)
-    return jnp.minimum(opacity * factor, 1)
+    return _opacity_factor(saliency, threshold, multiply, boost_top, where, opacity=opacity)
 
 
 def opacity_factor(
@@ -462,20 +461,31 @@ def opacity_factor(
                            "volshade.saliency.opacity_factor")
 
 
-def _opacity_factor(saliency, threshold, multiply, boost_top, where: str) -> Array:
-    """:func:`opacity_factor`, its errors naming ``where`` (the function called)."""
-    dtype = saliency.dtype
+def _opacity_factor(saliency, threshold, multiply, boost_top, where: str, *,
+                    opacity=None) -> Array:
+    r""":func:`opacity_factor`, its errors naming ``where`` (the function called); with
+    ``opacity``, the modulated opacity $\min(1, f\,\alpha)$ instead."""
     boost_top = _boost_top(boost_top, where)
     multiply = _checks.flag(multiply, "multiply", where)
     threshold = _checks.scalar(threshold, "threshold", where)
-    threshold = _checks.refuse(threshold.astype(dtype), [
-        (~jnp.isfinite(threshold), "`threshold` must be a finite saliency level (0.2 in the "
-                                   "paper).")], where)
+    xp, known = _checks.for_check(threshold)
+    threshold = _checks.refuse(threshold.astype(saliency.dtype), [
+        (~xp.isfinite(known), "`threshold` must be a finite saliency level (0.2 in the "
+                              "paper).")], where)
+    return _modulated(saliency, threshold, multiply, boost_top, opacity)
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _modulated(saliency, threshold, multiply, boost_top, opacity):
+    """The factor (``opacity`` None) or the modulated opacity, after the checks: one
+    compiled program (op by op, a first eager :func:`modulate_opacity` of a 32^3
+    volume compiled a dozen: 0.50 s, now 0.22-0.30 s)."""
     factor = saliency if multiply else jnp.ones_like(saliency)
     if boost_top is not None:
-        top = saliency >= 1 - jnp.asarray(boost_top, dtype)
+        top = saliency >= 1 - jnp.asarray(boost_top, saliency.dtype)
         factor = jnp.where(top, 2 * factor, factor)
-    return jnp.where(saliency < threshold, jnp.zeros_like(factor), factor)
+    factor = jnp.where(saliency < threshold, jnp.zeros_like(factor), factor)
+    return factor if opacity is None else jnp.minimum(opacity * factor, 1)
 
 
 def _boost_top(value, where: str) -> float | None:
