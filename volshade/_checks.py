@@ -212,7 +212,7 @@ def _value_flags(arr: Any, *, finite: bool, unit_range: bool) -> list:
     concrete array (a volume passed to an eager call) is checked by one compiled
     program: op by op, each comparison and reduction compiled a program of its own for
     every new shape and dtype (seven for the two checks of an opacity volume)."""
-    if array_module(arr) is jnp and not isinstance(arr, jax.core.Tracer):
+    if not isinstance(arr, jax.core.Tracer) and np.size(arr) > _HOST_CHECK_SIZE:
         flags = _compiled_value_flags(jnp.asarray(arr), finite, unit_range)
         known = concrete(flags)  # None when a trace stages the call (a closed-over volume)
         return list(flags if known is None else known)

@@ -675,14 +675,15 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
                              f"({max_radius}); raise `max_radius`.")
     radius = _scalar(radius, "radius", dtype, where)
     offset = _scalar(offset, "offset", dtype, where)
-    # known values were checked above, in NumPy; these checks are for traced ones
-    xp, r, a = _checks.for_check(radius, offset)
-    alpha = _checks.refuse(alpha, [
-        (~(a >= 0) | ~xp.isfinite(r), "`offset` must be >= 0 and `radius` finite (voxels)."),
-        (~(r > a), "`radius` must be > `offset`; increase the radius or lower the offset."),
-        *([] if max_radius is None else [
-            (r > max_radius, f"`radius` exceeds `max_radius` ({max_radius}); raise "
-                             f"`max_radius`.")])], where)
+    if r_value is None or a_value is None:  # known values were checked above, in NumPy
+        alpha = _checks.refuse(alpha, [
+            (~(offset >= 0) | ~jnp.isfinite(radius),
+             "`offset` must be >= 0 and `radius` finite (voxels)."),
+            (~(radius > offset), "`radius` must be > `offset`; increase the radius or lower "
+                                 "the offset."),
+            *([] if max_radius is None else [
+                (radius > max_radius, f"`radius` exceeds `max_radius` ({max_radius}); raise "
+                                      f"`max_radius`.")])], where)
 
     if weights is None:
         weights = jnp.asarray(np.full((n_dirs,), 1 / n_dirs), dtype)

@@ -783,9 +783,9 @@ def obscurance_shading(
     coefficients = {name: _checks.scalar(v, name, where).astype(dtype)
                     for v, name in ((k_d, "k_d"), (k_s, "k_s"), (shininess, "shininess"))}
     xp, *values = _checks.for_check(*coefficients.values())
-    problems = [(~xp.isfinite(v), f"`{name}` contains NaN or inf.")
-                for name, v in zip(coefficients, values, strict=True)]
-    problems.append((~(values[2] > 0), "`shininess` must be > 0."))
+    known = dict(zip(coefficients, values, strict=True))
+    problems = [(~xp.isfinite(v), f"`{name}` contains NaN or inf.") for name, v in known.items()]
+    problems.append((~(known["shininess"] > 0), "`shininess` must be > 0."))
     two_sided = _checks.flag(two_sided, "two_sided", where)
     # checked on the result: a check on a coefficient would be folded away with its term
     # (the specular one, when every N.H is a known 0)
