@@ -86,7 +86,7 @@ def test_accumulated_importance_matches_reference():
         c_ref, a_ref, i_ref, _ = ref.importance(c[r], a[r], imp[r], return_state=True)
         np.testing.assert_allclose(final.accumulated_importance[r], i_ref, atol=1e-12)
         np.testing.assert_allclose(final.opacity[r], a_ref, atol=1e-14)
-        np.testing.assert_allclose(final.premultiplied_color[r], c_ref, atol=1e-12)
+        np.testing.assert_allclose(final.color[r], c_ref, atol=1e-12)
 
 
 # --------------------------------------------------------------------------- properties
@@ -407,6 +407,52 @@ def test_gradient_at_singular_points_is_finite_for_standard():
     c, a, _ = _hard_inputs([1.0, 0.0, 1.0], [0, 0, 0], jnp.float64)
     g = jax.grad(lambda a: jcomposite(c, a).sum())(a)
     assert np.all(np.isfinite(g))
+
+
+# Opacities at the ends of [0, 1] with the one-sided derivative that a fit sees there: a
+# transparent sample behind a nonempty ray (equal and unequal importances), a transparent
+# first sample of the importance of the samples behind it, and an opaque sample that ties
+# the next sample's importance (K = I_s exactly; any opacity below 1 puts that sample
+# behind). (A transparent first sample of another importance is a point where eq. 8 is
+# not differentiable: see importance_step.)
+ONE_SIDED_CASES = {
+    "zero_behind_equal": ([0.5, 0.0, 0.5], [0.0, 0.0, 0.0], 1),
+    "zero_behind_important": ([0.5, 0.0, 0.5], [0.0, 3.0, 1.0], 1),
+    "zero_behind_unimportant": ([0.5, 0.0, 0.5], [2.0, -3.0, 1.0], 1),
+    "zero_first_equal": ([0.0, 0.5, 0.5], [0.0, 0.0, 0.0], 0),
+    "opaque_tie": ([1.0, 0.4, 1.0, 0.6], [2.0, 0.0, 3.0, 3.0], 2),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ONE_SIDED_CASES))
+def test_gradients_at_alpha_zero_and_one_are_the_one_sided_derivatives(case):
+    # The sample's colour is opacity-weighted, C_s = alpha_s c_s, so at alpha_s = 0 the
+    # derivative also carries c_s: it was cut to 0 (and the empty ray's came out with the
+    # wrong sign) when a transparent sample was skipped.
+    alphas, importances, k = ONE_SIDED_CASES[case]
+    n = len(alphas)
+    base = np.random.default_rng(30).uniform(0.1, 1.0, (n, 3))
+    bg = [0.25, 0.5, 0.75]
+    weights = np.asarray([1.0, 2.0, 3.0, 4.0])
+
+    def reference(alpha_k):
+        a = np.asarray(alphas, float)
+        a[k] = alpha_k
+        return float(ref.importance(base * a[:, None], a, importances, bg) @ weights)
+
+    h = 1e-6 if alphas[k] == 0 else -1e-6                   # into [0, 1]
+    expected = (-3 * reference(alphas[k]) + 4 * reference(alphas[k] + h)
+                - reference(alphas[k] + 2 * h)) / (2 * h)
+
+    def loss(a_k, grad_fn):
+        a = jnp.asarray(alphas).at[k].set(a_k)
+        c = jnp.asarray(base) * a[:, None]
+        bgi = jnp.asarray(-jnp.inf)
+        return grad_fn(c, a, jnp.asarray(importances), jnp.asarray(bg), bgi)
+
+    for grad_fn in (_loss, _autodiff_loss):                 # composite's adjoint; autodiff
+        got = jax.grad(loss)(jnp.asarray(float(alphas[k])), grad_fn)
+        np.testing.assert_allclose(got, expected, rtol=1e-6, err_msg=grad_fn.__name__)
 
 
 # --------------------------------------------------------------------------- transforms

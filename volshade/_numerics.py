@@ -15,13 +15,22 @@ from ._types import Array, ArrayLike
 
 
 def tiny(x: ArrayLike) -> Array:
-    """Smallest positive normal number of ``x``'s (floating) dtype."""
-    return jnp.asarray(jnp.finfo(jnp.result_type(x, jnp.float32)).tiny, jnp.result_type(x))
+    """Smallest positive normal number of ``x``'s floating dtype, in that dtype."""
+    dtype = jnp.result_type(x)
+    return jnp.asarray(jnp.finfo(dtype).tiny, dtype)
 
 
-def eps(x: ArrayLike) -> Array:
-    """Machine epsilon of ``x``'s (floating) dtype."""
-    return jnp.asarray(jnp.finfo(jnp.result_type(x, jnp.float32)).eps, jnp.result_type(x))
+@jax.custom_jvp
+def value_and_tangent(value: Array, like: Array) -> Array:
+    """``value``, differentiated as ``like``: for a value held exactly where a formula
+    with the same derivatives would round it (the straight-through idiom, without the
+    rounding of ``like + stop_gradient(value - like)``)."""
+    return value
+
+
+@value_and_tangent.defjvp
+def _value_and_tangent_jvp(primals, tangents):
+    return primals[0], tangents[1]
 
 
 def quotient(num: ArrayLike, den: ArrayLike) -> Array:

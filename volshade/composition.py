@@ -28,7 +28,7 @@ accumulated colour and opacity down just enough for the sample to be seen; see
 **Gradients.** The renderer lets JAX differentiate the steps (inside its
 checkpointed scan). :func:`composite` runs importance-aware compositing under a
 hand-derived reverse-mode adjoint of the whole scan instead: per sample it stores
-the average colour, $T_i$ and the importance gap, and the backward scan is scalar
+the accumulated colour, $T_i$ and the importance gap, and the backward scan is scalar
 per ray, with the colour work done in one vectorised pass outside it. Its
 gradients equal JAX's reverse mode through :func:`importance_step` (tested to
 rounding, hard cases included); forward mode (``jax.jvp``) is not available there.
@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _checks
-from ._numerics import tiny
+from ._numerics import tiny, value_and_tangent
 from ._types import Array, ArrayLike, Float
 
 
@@ -119,9 +119,7 @@ class ImportanceState(NamedTuple):
     float32 stays accurate even for importances around $10^4$.
 
     Attributes:
-        color: ``(..., 3)`` accumulated colour *divided by the accumulated opacity*,
-            $\bar c_i = C_i / \alpha_i$ (0 on an empty ray). It stays within the
-            range of the sample colours, so no rescaling can overflow.
+        color: ``(..., 3)`` accumulated opacity-weighted colour $C_i$ (eq. 8d).
         transmittance: ``(...)`` $T_i = 1 - \alpha_i$, updated exactly as in
             standard compositing (eq. 8c).
         peak_importance: ``(...)`` $P_i$, the largest importance of a sample with
@@ -138,11 +136,6 @@ class ImportanceState(NamedTuple):
     def opacity(self) -> Array:
         r"""Accumulated opacity $\alpha_i = 1 - T_i$ (eq. 8c), ``(...)``."""
         return 1 - self.transmittance
-
-    @property
-    def premultiplied_color(self) -> Array:
-        r"""Accumulated opacity-weighted colour $C_i = \alpha_i \bar c_i$, ``(..., 3)``."""
-        return _expand(self.opacity) * self.color
 
     @property
     def accumulated_importance(self) -> Array:
@@ -212,9 +205,10 @@ class _StepTerms(NamedTuple):
 
     alpha_acc: Array    # alpha_i = 1 - T_i
     nonempty: Array     # alpha_i > 0
-    visible: Array      # alpha_s above sqrt(tiny): the sample counts
-    ahead: Array        # K_i >= I_s: the accumulated importance dominates
-    new_peak: Array     # K_i < I_s and P_i <= I_s: the sample becomes the peak P_{i+1}
+    visible: Array      # alpha' above sqrt(tiny): the step's divisions are taken
+    blend: Array        # nonempty and visible: the colour weights of eq. 8a-8d apply
+    ahead: Array        # K_i > I_s: the accumulated importance dominates
+    new_peak: Array     # K_i <= I_s and P_i <= I_s: the sample becomes the peak P_{i+1}
     take_sample: Array  # P_{i+1} = I_s (a new peak, or an empty ray)
     g: Array            # e^{-|K_i - I_s|}
     m: Array            # modulation e^{min(0, K_i - I_s)}
@@ -222,8 +216,9 @@ class _StepTerms(NamedTuple):
     a: Array            # m alpha_i
     one_minus_a: Array  # T_i + (1 - m) alpha_i
     inv_p: Array        # 1 / alpha' (1 where not visible)
-    w: Array            # weight of the accumulated average colour
-    u: Array            # weight of the premultiplied sample colour
+    alpha_new: Array    # alpha_{i+1} = 1 - T_{i+1}
+    p: Array            # weight of the accumulated colour C_i
+    q: Array            # weight of the sample colour C_s
     excess: Array       # (y - a)^+
     num: Array          # a + alpha_s (y - a)^+ = alpha_{i+1} e^{K_{i+1} - M}
     inv_n: Array        # 1 / alpha_{i+1} (1 where not visible or alpha_{i+1} = 0)
@@ -241,24 +236,34 @@ def _step_terms(t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array) -> _St
     zero = jnp.zeros_like(t_acc)
     alpha_acc = 1 - t_acc
     nonempty = alpha_acc > 0
-    # alpha_s = 0 keeps the state exactly. Opacities below sqrt(tiny) (1e-19 in float32),
-    # which cannot change T either, count as 0: then 1 / alpha'^2 in the gradient stays finite.
-    visible = alpha_s > jnp.sqrt(tiny(alpha_s))
-    ahead = gap >= 0
+    # A tie K_i = I_s counts as behind: it arises where an opaque sample of importance I_s
+    # made K = I_s, and any opacity below 1 there puts the next equal importance behind.
+    ahead = gap > 0
     new_peak = ~ahead & at_peak
-    take_sample = (visible & new_peak) | ~nonempty
     g = jnp.exp(jnp.where(ahead, -gap, gap))
     m = jnp.where(ahead, one, g)                       # eq. 2-3: exp(min(0, K_i - I_s))
     y = jnp.where(ahead, g, one)                       # e^{I_s - M}; e^{K_i - M} = m
     # a = m alpha_i and 1 - a = T_i + (1 - m) alpha_i (exact where m = 1).
     a = m * alpha_acc
     one_minus_a = t_acc + (1 - m) * alpha_acc
-    alpha_p = a + alpha_s * one_minus_a                # eq. 8b, >= alpha_s > 0 where visible
+    alpha_p = a + alpha_s * one_minus_a                # eq. 8b; alpha_s on an empty ray
     t_new = t_acc * (1 - alpha_s)                      # eq. 8c
     alpha_new = 1 - t_new
+    # alpha' below sqrt(tiny) (1e-19 in float32) needs alpha_s below 2 sqrt(tiny), which
+    # cannot change T: such a step changes nothing, and 1 / alpha'^2 in the gradient stays
+    # finite. alpha_s = 0 behind a nonempty ray is visible (alpha' = a): its gradient is
+    # the one-sided limit, not cut to 0.
+    visible = alpha_p > jnp.sqrt(tiny(alpha_p))
+    blend = nonempty & visible
+    take_sample = (visible & new_peak) | ~nonempty
     inv_p = 1 / jnp.where(visible, alpha_p, one)
-    w = jnp.where(visible, a * inv_p, one)
-    u = jnp.where(visible, one_minus_a * inv_p, zero)
+    # eq. 8a-8d as C_{i+1} = p C_i + q C_s, with p = m alpha_{i+1} / alpha' written as
+    # 1 - alpha_s (1 - m) / alpha' (exactly 1 at alpha_s = 0 or m = 1) and
+    # q = alpha_{i+1} (1 - a) / alpha'. On an empty ray the step is standard compositing,
+    # C_1 = C_0 + T_0 C_s: q = T_0 (= 1) carries the gradient of the transmittance and no
+    # division by alpha_s is needed where alpha_s = 0.
+    p = jnp.where(blend, 1 - alpha_s * (1 - m) * inv_p, one)
+    q = jnp.where(blend, alpha_new * one_minus_a * inv_p, jnp.where(nonempty, zero, t_acc))
     # eq. 8e: K_{i+1} = M + log(num / alpha_{i+1}). alpha_{i+1} is 0 where an empty ray
     # meets alpha_s < eps / 2 (T stays 1); K is kept there.
     excess = jnp.where(y > a, y - a, zero)
@@ -267,20 +272,26 @@ def _step_terms(t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array) -> _St
     inv_n = 1 / jnp.where(n_ok, alpha_new, one)
     ok = n_ok & (num > 0)                              # then num * inv_n >= num > 0
     log_ratio = jnp.log(jnp.where(ok, num * inv_n, one))
-    return _StepTerms(alpha_acc, nonempty, visible, ahead, new_peak, take_sample, g, m, y, a,
-                      one_minus_a, inv_p, w, u, excess, num, inv_n, ok, log_ratio, t_new)
+    return _StepTerms(alpha_acc, nonempty, visible, blend, ahead, new_peak, take_sample, g, m,
+                      y, a, one_minus_a, inv_p, alpha_new, p, q, excess, num, inv_n, ok,
+                      log_ratio, t_new)
 
 
 def _step(state: ImportanceState, sample: Sample, gp: _Gap) -> ImportanceState:
     """:func:`importance_step` given the sample's :class:`_Gap`."""
     tm = _step_terms(state.transmittance, gp.gap, gp.at_peak, sample.alpha)
-    color = _expand(tm.w) * state.color + _expand(tm.u) * sample.color
+    color = _expand(tm.p) * state.color + _expand(tm.q) * sample.color
     peak = jnp.where(tm.take_sample, sample.importance, state.peak_importance)
     # M - P_{i+1} = delta_i (ahead), 0 (a new peak) or I_s - P_i (behind, below the peak).
     base = jnp.where(tm.ahead, gp.offset, jnp.where(tm.new_peak, 0, gp.to_peak))
     offset = jnp.where(tm.ok, base + tm.log_ratio, gp.offset)
     # Straight-through clamp: value min(offset, 0), derivative 1 (it removes rounding only).
     offset = offset - jax.lax.stop_gradient(jnp.maximum(offset, 0))
+    # alpha_s = 0 keeps K exactly (eq. 8e in exact arithmetic; the formula would round it,
+    # and may move it to a new peak), with the formula's derivative: the one-sided limit.
+    zero_alpha = sample.alpha == 0
+    peak = value_and_tangent(jnp.where(zero_alpha, state.peak_importance, peak), peak)
+    offset = value_and_tangent(jnp.where(zero_alpha, state.importance_offset, offset), offset)
     return ImportanceState(color, tm.transmittance, peak, offset)
 
 
@@ -294,13 +305,14 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     $$ C_{i+1} = \alpha_{i+1} C' / \alpha' \;(8d, \text{0 where } \alpha' = 0), \quad
        I_{i+1} = \max\big(I_i,\; \ln(\alpha_s + (1-\alpha_s)e^{I_i - I_s}) + I_s\big) \;(8e). $$
 
-    Dividing 8d by $\alpha_{i+1}$ shows that the *average* colour
-    $\bar c = C/\alpha$ is a convex combination,
+    Eq. 8a--8d combine to $C_{i+1} = p\, C_i + q\, C_s$ with
 
-    $$ \bar c_{i+1} = w\, \bar c_i + (1 - w)\, c_s, \qquad w = a / \alpha',\;
-       1 - w = \alpha_s (1 - a) / \alpha', $$
+    $$ p = \frac{m\,\alpha_{i+1}}{\alpha'} = 1 - \frac{\alpha_s (1 - m)}{\alpha'}
+       \in [0, 1], \qquad q = \frac{\alpha_{i+1} (1 - a)}{\alpha'}, $$
 
-    so the state carries $\bar c$, the exact transmittance $T = 1 - \alpha$
+    ($p$ is exactly 1 where $\alpha_s = 0$ or $m = 1$), and on an empty ray the
+    step is standard compositing, $C_1 = C_0 + T_0 C_s$, which needs no division
+    by $\alpha_s$. The state carries $C$, the exact transmittance $T = 1 - \alpha$
     (eq. 8c is the standard update, bit for bit) and $K = I - \ln\alpha$
     (see :class:`ImportanceState`). The paper gives no initial importance $I_0$;
     an empty ray ($\alpha_0 = 0$) is taken as $I_0 = -\infty$, the value its
@@ -314,15 +326,22 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
 
     whose exponents are $\le 0$ and whose argument lies in
     $[e^{-|K_i - I_s|}, 1]$: no exp overflows for any importance gap and no
-    division by zero happens ($\alpha' \ge \alpha_s$; the only zero
-    $\alpha_{i+1}$ is on an empty ray meeting a sample too faint to change
-    $T = 1$, where $K$ is kept). Every guarded operation uses the
-    double-``where`` idiom, so gradients are finite at $\alpha_s = 0$ and 1 and
-    for importance gaps of $10^4$. The clamp $\delta_{i+1} \le 0$ only removes
-    rounding (the exact value never exceeds 0), so its derivative is taken as 1.
-    A sample with $\alpha_s = 0$ (or below $\sqrt{\text{tiny}}$ of the dtype,
-    $10^{-19}$ in float32) changes nothing (its colour is not used, as 8a--8d
-    give when $C_s = \alpha_s c_s$), and with equal importances everywhere
+    division by zero happens (the divisions are taken where $\alpha'$ exceeds
+    $\sqrt{\text{tiny}}$ of the dtype, $10^{-19}$ in float32, which a step with a
+    smaller $\alpha'$ cannot change; the only zero $\alpha_{i+1}$ is on an empty
+    ray meeting a sample too faint to change $T = 1$, where $K$ is kept). Every
+    guarded operation uses the double-``where`` idiom, so gradients are finite at
+    $\alpha_s = 0$ and 1 and for importance gaps of $10^4$; at $\alpha_s = 0$ and
+    1 they are the one-sided derivatives (an opacity cannot leave [0, 1]); a tie
+    $K_i = I_s$ is taken as behind, the side that $\alpha < 1$ gives. One point
+    has no derivative: an empty ray meeting transparent samples of different
+    importances (the importance that an opacity rising from 0 there brings to the
+    samples behind depends on which of them rises first, and how fast); the
+    gradient there is that of standard compositing, exact where those samples'
+    importance equals the next ones'. The clamp
+    $\delta_{i+1} \le 0$ only removes rounding (the exact value never exceeds 0),
+    so its derivative is taken as 1. A sample with $\alpha_s = 0$ and
+    $C_s = 0$ changes nothing, bit for bit, and with equal importances everywhere
     $m = 1$ and the step is standard compositing. Only two transcendental
     functions (one ``exp``, one ``log``) are evaluated.
 
@@ -359,7 +378,7 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
 
 def _importance_step_adjoint(
     t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array, lam_t_new: Array,
-    lam_k_new: Array, lam_w: Array, lam_u: Array,
+    lam_k_new: Array, lam_p: Array, lam_q: Array,
 ) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
     r"""Reverse-mode adjoint of :func:`importance_step`, derived by hand, per ray.
 
@@ -375,13 +394,13 @@ def _importance_step_adjoint(
     of $K_{i+1} = P_{i+1} + \delta_{i+1}$, given to both); then $P_i$ and
     $\delta_i$ get equal cotangents too, returned once. (The part of a cotangent
     that acts on $P$ alone is passed back by the caller along ``take_sample``.)
-    The colour update $\bar c_{i+1} = w \bar c_i + u C_s$ is linear, so the caller
-    handles it: it passes $\lambda_w = \lambda_{\bar c_{i+1}} \cdot \bar c_i$ and
-    $\lambda_u = \lambda_{\bar c_{i+1}} \cdot C_s$ and gets $w$ and $u$ back
-    ($\lambda_{\bar c_i} = w \lambda_{\bar c_{i+1}}$, $\lambda_{C_s} = u \lambda_{\bar c_{i+1}}$).
+    The colour update $C_{i+1} = p C_i + q C_s$ is linear, so the caller
+    handles it: it passes $\lambda_p = \lambda_{C_{i+1}} \cdot C_i$ and
+    $\lambda_q = \lambda_{C_{i+1}} \cdot C_s$ and gets $p$ and $q$ back
+    ($\lambda_{C_i} = p \lambda_{C_{i+1}}$, $\lambda_{C_s} = q \lambda_{C_{i+1}}$).
 
     Returns:
-        ``(lam_t, lam_k, lam_alpha, lam_importance, take_sample, w, u)``: the
+        ``(lam_t, lam_k, lam_alpha, lam_importance, take_sample, p, q)``: the
         cotangents of $T_i$, of $P_i$ and of $\delta_i$ (equal), of $\alpha_s$ and
         of $I_s$, where $P_{i+1} = I_s$, and the colour weights.
     """
@@ -399,18 +418,26 @@ def _importance_step_adjoint(
     lam_y = jnp.where(tm.y > tm.a, lam_num * alpha_s, zero)
     lam_a = lam_num - lam_y
     lam_alpha = lam_num * tm.excess
-    # w = a / alpha', u = (1 - a) / alpha', alpha' = a + alpha_s (1 - a)
-    lam_alpha_p = jnp.where(tm.visible, -(lam_w * tm.w + lam_u * tm.u) * tm.inv_p, zero)
-    lam_a = lam_a + jnp.where(tm.visible, lam_w * tm.inv_p, zero) + lam_alpha_p
-    lam_oma = jnp.where(tm.visible, lam_u * tm.inv_p, zero) + lam_alpha_p * alpha_s
+    # where blend: p = 1 - alpha_s (1 - m) r, q = alpha_{i+1} (1 - a) r with r = 1 / alpha',
+    # alpha' = a + alpha_s (1 - a); on an empty ray q = T_i
+    lam_p = jnp.where(tm.blend, lam_p, zero)
+    lam_qb = jnp.where(tm.blend, lam_q, zero)
+    lam_m = lam_p * alpha_s * tm.inv_p
+    lam_alpha = lam_alpha - lam_p * (1 - tm.m) * tm.inv_p
+    lam_r = lam_qb * tm.alpha_new * tm.one_minus_a - lam_p * (1 - tm.m) * alpha_s
+    lam_alpha_new = lam_alpha_new + lam_qb * tm.one_minus_a * tm.inv_p
+    lam_alpha_p = -lam_r * tm.inv_p * tm.inv_p
+    lam_a = lam_a + lam_alpha_p
+    lam_oma = lam_qb * tm.alpha_new * tm.inv_p + lam_alpha_p * alpha_s
     lam_alpha = lam_alpha + lam_alpha_p * tm.one_minus_a
     # alpha_{i+1} = 1 - T_{i+1}, T_{i+1} = T_i (1 - alpha_s)
     lam_t_n = lam_t_new - lam_alpha_new
     lam_alpha = lam_alpha - lam_t_n * t_acc
     # a = m alpha_i, 1 - a = T_i + (1 - m) alpha_i, alpha_i = 1 - T_i
-    lam_m = (lam_a - lam_oma) * tm.alpha_acc
+    lam_m = lam_m + (lam_a - lam_oma) * tm.alpha_acc
     lam_alpha_acc = lam_oma * (1 - tm.m) + lam_a * tm.m
-    lam_t = lam_t_n * (1 - alpha_s) + lam_oma - lam_alpha_acc
+    lam_t = (lam_t_n * (1 - alpha_s) + lam_oma - lam_alpha_acc
+             + jnp.where(tm.nonempty, zero, lam_q))
     # m = where(ahead, 1, g), y = where(ahead, g, 1), g = exp(where(ahead, -gap, gap))
     lam_exponent = jnp.where(tm.ahead, lam_y, lam_m) * tm.g
     lam_gap = jnp.where(tm.ahead, -lam_exponent, lam_exponent)
@@ -418,7 +445,7 @@ def _importance_step_adjoint(
     lam_k = jnp.where(tm.nonempty, lam_offset + lam_gap, zero)
     lam_to_peak = jnp.where(tm.nonempty, lam_to_peak - lam_gap, zero)
     lam_imp = jnp.where(tm.take_sample, lam_k_new, zero) + lam_to_peak
-    return lam_t, lam_k, lam_alpha, lam_imp, tm.take_sample, tm.w, tm.u
+    return lam_t, lam_k, lam_alpha, lam_imp, tm.take_sample, tm.p, tm.q
 
 
 def _dot3(x: Array, y: Array) -> Array:
@@ -441,12 +468,12 @@ def _importance_scan(
 
     ``colors`` ``(..., S, 3)``, ``alphas`` and ``importance`` ``(..., S)``, front first.
     Reverse mode is hand-written (forward mode is not available): the forward
-    pass stores, per step, the average colour $\bar c_i$, $T_i$, the gap
+    pass stores, per step, the colour $C_i$, $T_i$, the gap
     $K_i - I_s$ and whether $I_s \ge P_i$; the backward pass is a reverse
     ``lax.scan`` of :func:`_importance_step_adjoint`. Since the colour update is
     linear with scalar weights, the colour cotangent before step $i$ is
     $W_i \lambda$, with $\lambda$ the colour cotangent of the final state and
-    $W_i = \prod_{j \ge i} w_j$: the scan carries the scalar $W$, and the colour
+    $W_i = \prod_{j \ge i} p_j$: the scan carries the scalar $W$, and the colour
     dot products and the ``(..., S, 3)`` colour cotangents are formed outside it,
     in one vectorised pass each, in the caller's layout.
     """
@@ -467,18 +494,18 @@ def _importance_scan_fwd(state, colors, alphas, importance, unroll):
 def _importance_scan_bwd(unroll, residuals, cotangent):
     (color_acc, t_acc, gap, at_peak), alphas, colors = residuals
     lam = cotangent.color                                               # (..., 3)
-    dot_acc = _dot3(color_acc, lam[None])                               # (S, ...) lam . cbar_i
+    dot_acc = _dot3(color_acc, lam[None])                               # (S, ...) lam . C_i
     dot_sample = jnp.moveaxis(_dot3(colors, lam[..., None, :]), -1, 0)  # (S, ...) lam . C_s
 
     def body(carry, inputs):
         scale, lam_t, lam_k, lam_p = carry      # scale = W_{i+1}; lam_p acts on P alone
         t, gp, at, alpha, d_acc, d_sample = inputs
-        lam_t, lam_k, lam_alpha, lam_imp, take, w, u = _importance_step_adjoint(
+        lam_t, lam_k, lam_alpha, lam_imp, take, p, q = _importance_step_adjoint(
             t, gp, at, alpha, lam_t, lam_k, scale * d_acc, scale * d_sample)
         zero = jnp.zeros_like(lam_p)
         lam_imp = lam_imp + jnp.where(take, lam_p, zero)
-        return (w * scale, lam_t, lam_k, jnp.where(take, zero, lam_p)), \
-            (u * scale, lam_alpha, lam_imp)
+        return (p * scale, lam_t, lam_k, jnp.where(take, zero, lam_p)), \
+            (q * scale, lam_alpha, lam_imp)
 
     # lam_P P + lam_delta delta = lam_delta K + (lam_P - lam_delta) P
     carry = (jnp.ones_like(cotangent.transmittance), cotangent.transmittance,
@@ -504,7 +531,7 @@ def importance_finish(
     The background is one more step of eq. 8 with $\alpha_s = 1$, colour
     $c_{bg}$ and importance $I_{bg}$: with $a = m\,\alpha_n$ (eq. 2),
 
-    $$ \mathrm{rgb} = a\, \bar c_n + (1 - a)\, c_{bg}, \qquad \mathrm{alpha} = a, $$
+    $$ \mathrm{rgb} = m\, C_n + (1 - a)\, c_{bg}, \qquad \mathrm{alpha} = a, $$
 
     i.e. RGBA of the (possibly faded) volume premultiplied over the background.
     A low-importance volume fades to the background as $I_{bg}$ grows;
@@ -529,7 +556,7 @@ def importance_finish(
     m = jnp.exp(jnp.minimum(_gap(state, i_bg, active), 0))
     a = m * alpha_acc
     one_minus_a = t_acc + (1 - m) * alpha_acc
-    rgb = _expand(a) * c_acc + _expand(one_minus_a) * _background(background, t_acc.shape, dtype)
+    rgb = _expand(m) * c_acc + _expand(one_minus_a) * _background(background, t_acc.shape, dtype)
     return jnp.concatenate([rgb, _expand(a)], axis=-1)
 
 
@@ -654,12 +681,17 @@ def composite(
 @functools.partial(jax.jit, static_argnames=("unroll",))
 def _composite(colors, alphas, importance, bg, bg_imp, *, unroll: int) -> Array:
     """:func:`composite` of checked arrays, compiled: an eager call would otherwise trace
-    and compile its scan again each time."""
+    and compile its scan again each time. Half precision is composited in float32 (its
+    few exponent bits would make an opacity of 4e-3 a singular point of the gradient)
+    and the result rounded back."""
     batch, dtype = alphas.shape[:-1], alphas.dtype
+    colors, alphas, bg = (_checks.at_least_float32(x) for x in (colors, alphas, bg))
+    work = alphas.dtype
     if importance is None:
         comp = COMPOSITORS["standard"]
-        state, _ = jax.lax.scan(lambda s, x: (comp.step(s, x), None), comp.init(batch, dtype),
+        state, _ = jax.lax.scan(lambda s, x: (comp.step(s, x), None), comp.init(batch, work),
                                 _samples(colors, alphas), unroll=unroll)
-        return comp.finish(state, bg)
-    state = _importance_scan(importance_init(batch, dtype), colors, alphas, importance, unroll)
-    return importance_finish(state, bg, bg_imp)
+        return comp.finish(state, bg).astype(dtype)
+    importance, bg_imp = _checks.at_least_float32(importance), _checks.at_least_float32(bg_imp)
+    state = _importance_scan(importance_init(batch, work), colors, alphas, importance, unroll)
+    return importance_finish(state, bg, bg_imp).astype(dtype)
