@@ -523,6 +523,29 @@ def test_dtype_follows_input():
     assert composite(jnp.asarray(c, jnp.float32), jnp.asarray(a, jnp.float32)).dtype == jnp.float32
 
 
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_is_composited_in_float32(dtype):
+    # float16 has 2^-14 as its smallest normal number: composited in float16, an opacity of
+    # 2e-3 made 1 / alpha'^2 overflow and the gradient NaN
+    a = jnp.asarray([0.9, 2e-3, 0.5], dtype)
+    imp = jnp.asarray([0.0, 1.0, 0.0], dtype)
+
+    def loss(a, imp, dtype_out):
+        c = a[:, None] * jnp.eye(3, dtype=a.dtype)
+        return composite(c, a, importance=imp).astype(dtype_out).sum()
+
+    out = composite(a[:, None] * jnp.eye(3, dtype=dtype), a, importance=imp)
+    assert out.dtype == dtype
+    wide = [x.astype(jnp.float32) for x in (a, imp)]
+    np.testing.assert_array_equal(out, composite(wide[0][:, None] * jnp.eye(3), wide[0],
+                                                 importance=wide[1]).astype(dtype))
+    got = jax.grad(loss, argnums=(0, 1))(a, imp, jnp.float32)
+    want = jax.grad(loss, argnums=(0, 1))(*wide, jnp.float32)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == dtype and np.all(np.isfinite(np.asarray(g, np.float32)))
+        np.testing.assert_allclose(np.asarray(g, np.float32), w, rtol=1e-2, atol=1e-3)
+
+
 def test_errors():
     c, a, imp = random_rays(2, 3)
     with pytest.raises(ValueError, match="colors"):

@@ -398,6 +398,9 @@ def test_focus_errors_and_dtype():
         focus_weights((4,), center=(1.0, 1.0), radius=1.0)
     with pytest.raises(Exception, match="radius"):
         focus_weights((4, 4), center=(1.0, 1.0), radius=0.0)
+    for name in ("inside", "outside"):     # a per-column weight is not what either means
+        with pytest.raises(ValueError, match=f"`{name}` must be a scalar.*global_weight"):
+            focus_weights((4, 3), center=(1.0, 1.0), radius=1.0, **{name: jnp.ones(3)})
     w = focus_weights((4, 4), center=jnp.array([1.0, 1.0], jnp.float32),
                       radius=jnp.asarray(1.0, jnp.float32))
     assert w.dtype == jnp.float32
@@ -417,3 +420,8 @@ def test_background_importance_no_background_and_weight_off():
             jnp.full((2, 3), 0.5), jnp.full((2,), 0.5), importance=jnp.ones(2),
             background_importance=p.background_importance())) * p.global_weight)(p)
         assert np.isfinite(float(g.global_weight)) and np.isfinite(float(g.background))
+    # W_global W_bg has slope W_bg at W_global = 0 as well (the off switch only changes the
+    # value where W_bg = -inf)
+    for g0 in (0.0, 1e-9, -1e-9):
+        slope = jax.grad(lambda g: Importance(background=-3.0).background_importance(g))(g0)
+        assert float(slope) == -3.0, g0

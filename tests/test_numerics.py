@@ -135,3 +135,10 @@ def test_correct_opacity_float_below_one_counts_as_one(dtype):
 def test_correct_opacity_half_precision_keeps_values_below_one(dtype):
     below = jnp.asarray(1 - jnp.finfo(dtype).epsneg, dtype)
     assert float(nm.correct_opacity(below, 1.0)) == float(below)  # the identity
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16, jnp.float32, jnp.float64])
+def test_tiny_is_that_of_the_dtype(dtype):
+    # it was float32's for half precision (promoted, then cast: 0 in float16)
+    t = nm.tiny(jnp.ones(2, dtype))
+    assert t.dtype == dtype and float(t) == float(jnp.finfo(dtype).tiny)

@@ -174,10 +174,11 @@ class Importance(eqx.Module):
         g = self.global_weight if global_weight is None else jnp.asarray(global_weight)
         # a zero weight switches importance off (0, not 0 * -inf = NaN); W_bg = -inf means
         # "no background" whatever the weight's sign, and is kept out of the product so
-        # that its gradients stay finite (double where)
+        # that its gradients stay finite (double where). A finite W_bg enters the product
+        # at g = 0 too, whose slope there is W_bg.
         off, none = g == 0, self.background == -jnp.inf
-        product = g * jnp.where(off | none, 0, self.background)
-        return jnp.where(off, 0, jnp.where(none, -jnp.inf, product))
+        product = g * jnp.where(none, 0, self.background)
+        return jnp.where(none, jnp.where(off, 0, -jnp.inf), product)
 
 
 def _leaves(params: Importance) -> dict[str, Array]:
@@ -542,9 +543,15 @@ def focus_weights(
     radius = _checks.as_float_array(radius, "radius", where)
     if radius.ndim != 0:
         raise ValueError(f"{where}: `radius` must be a scalar (pixels), got shape {radius.shape}.")
-    inside = _checks.finite(_checks.as_float_array(inside, "inside", where), "inside", where)
-    outside = _checks.finite(_checks.as_float_array(outside, "outside", where), "outside",
-                             where)
+    inside, outside = (_checks.as_float_array(x, name, where)
+                       for x, name in ((inside, "inside"), (outside, "outside")))
+    for x, name in ((inside, "inside"), (outside, "outside")):
+        if x.ndim != 0:
+            raise ValueError(f"{where}: `{name}` must be a scalar weight, got shape {x.shape}; "
+                             f"for one weight per pixel, pass an (H, W) array as "
+                             f"`global_weight=` instead.")
+    inside = _checks.finite(inside, "inside", where)
+    outside = _checks.finite(outside, "outside", where)
     if dtype is None:
         dtype = jnp.result_type(center, radius, inside, outside)
     radius = _checks.refuse(radius.astype(dtype), [(_checks.not_positive(radius),
