@@ -349,6 +349,8 @@ def test_bad_inputs_raise_clear_errors():
         vs.feature_ao(vol, features=SHELLS, base=SHELLS_TF, merge="mean", **kw)
     with pytest.raises(ValueError, match="base="):
         vs.feature_ao(vol, features=SHELLS, **kw)
+    with pytest.raises(ValueError, match="^volshade.feature_ao: unknown implementation 'cuda'"):
+        vs.feature_ao(vol, features=SHELLS, base=SHELLS_TF, implementation="cuda", **kw)
     with pytest.raises(TypeError, match=r"features\[1\]"):
         vs.feature_ao(vol, features=[SHELLS_TF, "skull"], **kw)
     with pytest.raises(ValueError, match="radius.*offset"):
@@ -421,6 +423,29 @@ def test_neighbourhood_merge_falls_back_below_the_dtypes_epsilon():
     np.testing.assert_array_equal(np.asarray(got)[1, 1, 1], np.float32(0.4))
     np.testing.assert_allclose(np.asarray(got), merge_reference(ao, opacities, "neighbourhood"),
                                rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_merges_in_float32(dtype):
+    # summed opacities of 3e-3 (above float16's epsilon, the fallback's bound): the mean's
+    # derivative, of order 1 / sum^2, overflowed float16 and made every entry NaN
+    ao = np.stack([np.full((4, 4, 4), 0.9), np.full((4, 4, 4), 0.4)])
+    opacities = np.zeros((2, 4, 4, 4))
+    opacities[0, 1, 1, 1], opacities[1, 1, 1, 2] = 2e-3, 1e-3
+
+    def merged(ao, opacities):
+        return vs.merge_feature_ao(ao, opacities, merge="neighbourhood")
+
+    half = [jnp.asarray(x, dtype) for x in (ao, opacities)]
+    wide = [x.astype(jnp.float32) for x in half]
+    out = merged(*half)
+    assert out.dtype == dtype
+    np.testing.assert_array_equal(out, merged(*wide).astype(dtype))
+    for g, w in zip(jax.grad(lambda *a: merged(*a).astype(jnp.float32).sum(), (0, 1))(*half),
+                    jax.grad(lambda *a: merged(*a).sum(), (0, 1))(*wide), strict=True):
+        assert g.dtype == dtype and np.all(np.isfinite(np.asarray(g, np.float32)))
+        np.testing.assert_allclose(np.asarray(g, np.float32), np.asarray(w.astype(dtype),
+                                                                         np.float32))
 
 
 def test_an_eager_call_compiles_once():

@@ -80,7 +80,7 @@ from jax import lax
 
 from . import _checks
 from ._types import Array, ArrayLike, Float, Int, Volume
-from .lao import LocalAmbientOcclusion, _concrete, _prepare
+from .lao import _IMPLEMENTATIONS, LocalAmbientOcclusion, _concrete, _prepare
 from .transfer import Feature, TransferFunction, _feature_opacities, _feature_tuple
 
 _WHERE = "volshade.feature_ao"
@@ -180,7 +180,8 @@ def merge_feature_ao(
             docstring.
 
     Returns:
-        ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``ao``.
+        ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``ao`` (computed in float32 at
+        least).
 
     Raises:
         ValueError: ``ao`` or ``opacities`` not 4-D or empty (no feature), shapes that
@@ -204,7 +205,10 @@ def merge_feature_ao(
     ao = _checks.finite(ao, "ao", where, unit_range=True,
                         hint="(AO volumes, 1 = unoccluded)")
     opacities = _checks.finite(opacities, "opacities", where, unit_range=True)
-    return _merge(ao, opacities.astype(ao.dtype), merge)
+    # half precision is merged in float32: the neighbourhood mean's derivative, of order
+    # 1 / (summed opacity)^2, overflows float16 below a sum of 4e-3
+    work = _checks.at_least_float32(ao)
+    return _merge(work, opacities.astype(work.dtype), merge).astype(ao.dtype)
 
 
 @functools.partial(jax.jit, static_argnames="merge")
@@ -279,6 +283,7 @@ def feature_ao(
         (16, 16, 16)
     """
     _checks.option(merge, MERGES, "merge", _WHERE)
+    _checks.option(implementation, _IMPLEMENTATIONS, "implementation", _WHERE)
     opacities = _feature_opacities(volume, features, base, step, _WHERE)
     # lao's checks, here: on values known now they raise at once, naming feature_ao (in
     # the compiled loop below they would be run-time errors)
