@@ -260,6 +260,35 @@ def test_a_non_finite_target_is_refused():
         _bad_call(target=jnp.full((4, 4, 4), jnp.nan))
 
 
+@pytest.mark.parametrize("path, effects, match", [
+    ("importance.global_weight", {"composition": "importance", "focus": vs.Focus()},
+     "is not read by this scene.*focus's `inside` and `outside`"),
+    ("phong.ambient", {"shading": "obscurance", "ambient": "obscurance"},
+     "is not read by this scene.*shading='obscurance'"),
+    ("obscurance.d_max", {"ambient": "obscurance", "obscurance": vs.ObscuranceParams(rho="ao")},
+     "gets no gradient.*rho='ao'.*step in d_max"),
+    ("saliency.d_max", {"modulation": "saliency", "saliency": vs.SaliencyModulation(rho="ao")},
+     "gets no gradient.*rho='ao'"),
+    ("saliency.d_max", {"modulation": "saliency",
+                        "saliency": vs.SaliencyModulation(multiply=False)},
+     "gets no gradient.*multiply=False"),
+])
+def test_leaves_the_scene_leaves_flat_are_refused(path, effects, match):
+    # the scene's own settings make these leaves unread, or steps: the fit would stop at
+    # once and report success with the value unchanged
+    scene = vs.Scene(volume=jnp.zeros((6, 6, 6)), transfer=vs.transfer.preset("grey"),
+                     **effects)
+    with pytest.raises(ValueError, match=f"{re.escape(repr(path))} {match}"):
+        vs.fit(scene, vs.Camera.orbit(image_shape=(4, 4)), jnp.zeros((4, 4, 4)), params=[path])
+    # the other settings: read and graded, accepted (this raises otherwise)
+    graded = {"importance.global_weight": {"composition": "importance"},
+              "phong.ambient": {"shading": "phong"},
+              "obscurance.d_max": {"ambient": "obscurance"},
+              "saliency.d_max": {"modulation": "saliency"}}[path]
+    _parameter(vs.Scene(volume=jnp.zeros((6, 6, 6)), transfer=vs.transfer.preset("grey"),
+                        **graded), path)
+
+
 @pytest.mark.parametrize("path, match", [
     ("lao.directions", "ray directions"),
     ("clip.center", "piecewise constant"),

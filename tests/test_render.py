@@ -327,6 +327,9 @@ def test_ambient_volume_scales_unlit_colour():
 
 def test_bad_input_errors(tmp_path):
     tf, cam = preset("grey"), Camera.orbit(image_shape=(4, 4))
+    for name in ("azimuth", "elevation", "distance"):   # not a bare error from jnp.stack
+        with pytest.raises(ValueError, match=f"`{name}` must be a scalar.*list of cameras"):
+            Camera.orbit(**{name: jnp.asarray([10.0, 20.0])})
     with pytest.raises(ValueError, match="3 dimensions"):
         march(jnp.zeros((4, 4)), tf, cam)
     with pytest.raises(TypeError, match="dtype"):

@@ -297,6 +297,19 @@ def test_errors():
             opacity_factor(v, boost_top=bad)
         with pytest.raises(ValueError, match="boost_top"):
             SaliencyModulation(boost_top=bad)
+    # opacity_factor checks its saliency as modulate_opacity does, with a saliency's hint
+    for fn in (opacity_factor, lambda s: modulate_opacity(jnp.ones_like(s), s)):
+        with pytest.raises(Exception, match="`saliency` contains NaN"):
+            fn(v.at[0, 0, 0].set(jnp.nan))
+        with pytest.raises(Exception, match=r"`saliency` must lie in \[0, 1\] \(a scaled "
+                                            r"saliency: `volshade.saliency.saliency`"):
+            fn(v + 5.0)
+    with pytest.raises(ValueError, match="`saliency` must have 3 dimensions"):
+        opacity_factor(jnp.zeros((4, 4)))
+    # a 0/1 mask of ints is a saliency too: the threshold 0.2 is not rounded to 0
+    mask = [[[0, 1]]]
+    assert opacity_factor(mask, multiply=False).tolist() == [[[0.0, 1.0]]]
+    assert modulate_opacity(jnp.ones((1, 1, 2)), mask, multiply=False).tolist() == [[[0.0, 1.0]]]
     half = jnp.full((1, 1, 2), 0.5)
     np.testing.assert_allclose(  # a NumPy float is a fraction too
         np.asarray(modulate_opacity(half, jnp.ones((1, 1, 2)), boost_top=np.float32(0.5))), 1.0)

@@ -175,6 +175,18 @@ def test_scene_errors():
         Scene(volume=_volume(), transfer=tf, focus=Focus())
     with pytest.raises(ValueError, match="background"):
         Scene(volume=_volume(), transfer=tf, background=(0.0, 0.0))
+    with pytest.raises(ValueError, match=r"`ambient_volume` must have the shape of `volume`, "
+                                         r"\(6, 6, 6\) .*got \(6, 6, 5\)"):
+        Scene(volume=_volume(), transfer=tf, ambient="volume", ambient_volume=jnp.ones((6, 6, 5)))
+    # leaves that the scene's other settings leave unread: set, they would change nothing
+    with pytest.raises(ValueError, match=r"`importance.global_weight` is not read by this "
+                                         r"scene \(the focus's `inside` and `outside`"):
+        Scene(volume=_volume(), transfer=tf, composition="importance", focus=Focus(),
+              importance=Importance(global_weight=0.5))
+    with pytest.raises(ValueError, match=r"`phong.ambient` is not read by this scene "
+                                         r"\(shading='obscurance'.*default, 0.35"):
+        Scene(volume=_volume(), transfer=tf, ambient="obscurance", shading="obscurance",
+              phong=Phong(ambient=0.9))
     # effect parameters of the wrong kind, named here rather than failing inside the render
     for name, value, kind in (("lao", 6.0, "LocalAmbientOcclusion"),
                               ("importance", 2.0, "Importance"),
@@ -224,8 +236,8 @@ def test_effect_parameters_default_when_used_and_are_refused_when_not():
     assert isinstance(on.lao, LocalAmbientOcclusion)
     assert dataclasses.replace(on, ambient="none").lao is None
     assert dataclasses.replace(used, ambient="obscurance").lao is None
-    for given in (dataclasses.replace(lit, shading="obscurance"),
-                  dataclasses.replace(used, phong=Phong(ambient=0.2)),
+    for given in (dataclasses.replace(lit, shading="phong", ambient="lao"),
+                  dataclasses.replace(used, phong=Phong(specular=0.2)),
                   eqx.tree_at(lambda s: s.phong.ambient, used, 0.3)):
         with pytest.raises(ValueError, match=r"`phong` is used only .* pass `phong=None` too"):
             dataclasses.replace(given, shading="none")

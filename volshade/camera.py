@@ -174,6 +174,12 @@ class Camera(eqx.Module):
         if leaves["target"].shape != (3,):
             raise ValueError(f"{where}: `target` must be a point (d, h, w), got shape "
                              f"{leaves['target'].shape}.")
+        for name in ("azimuth", "elevation", "distance"):
+            if leaves[name].ndim != 0:
+                raise ValueError(f"{where}: `{name}` must be a scalar, got shape "
+                                 f"{leaves[name].shape}; for several views pass a list of "
+                                 f"cameras to the render, or jax.vmap a function that "
+                                 f"builds one.")
         for name, value in leaves.items():
             # traced values: the render refuses a non-finite eye or target, at run time
             _checks.refuse(value, [(_checks.non_finite(value).any(),

@@ -13,9 +13,10 @@ neighbour $k$. The obscurance paper (Ruiz et al. 2008, eq. 4) uses the same sums
 with the unnormalised weights $w(k) = |\mathbf{x}(k)|$ on a $5^3$ cube; the
 normalisation above only rescales each component and makes the estimate exact
 for linear fields, whatever the weights. Volumes are extended by edge
-replication at the border. The sums are taken over central differences
-$f(\mathbf{x} + k) - f(\mathbf{x} - k)$, so a constant neighbourhood gives an
-exactly zero gradient.
+replication at the border, so within ``size // 2`` voxels of it a linear field's
+gradient comes out smaller (the outermost layer of a $5^3$ fit gets half of it).
+The sums are taken over central differences $f(\mathbf{x} + k) - f(\mathbf{x} - k)$,
+so a constant neighbourhood gives an exactly zero gradient.
 """
 
 import functools

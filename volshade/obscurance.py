@@ -837,10 +837,20 @@ def _check_smoothing(smoothing: float, where: str) -> None:
                          f"sigma in voxels, static), got {smoothing!r}.")
 
 
+def _d_max_without_gradient(rho) -> dict[str, str]:
+    """``{"d_max": why}`` where ``rho`` makes the obscurance a step in ``d_max``."""
+    if isinstance(rho, str) and rho == "ao":
+        return {"d_max": "with rho='ao' an occluder counts 1 at any distance up to d_max, "
+                         "so the obscurance is a step in d_max; a graded rho ('sqrt', "
+                         "'linear', 'exponential') makes it differentiable"}
+    return {}
+
+
 class ObscuranceParams(eqx.Module):
     r"""Obscurance settings for a :class:`volshade.Scene` (``ambient="obscurance"``).
 
-    ``d_max``, ``low`` and ``high`` are differentiable leaves; the rest is static.
+    ``d_max``, ``low`` and ``high`` are differentiable leaves (``d_max`` but with
+    ``rho="ao"``, a step in it); the rest is static.
 
     Attributes:
         d_max: maximum occluder distance in voxels.
@@ -908,6 +918,10 @@ class ObscuranceParams(eqx.Module):
         _checks.refuse(low, [(~(jnp.isfinite(low) & jnp.isfinite(high)),
                               "`low` and `high` must be finite."),
                              (low > high, "`low` must be <= `high`.")], where, traced=False)
+
+    def _without_gradient(self) -> dict[str, str]:
+        """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
+        return _d_max_without_gradient(self.rho)
 
     def __call__(self, volume: Float[Array, "D H W"], transfer) -> Array:
         """Thresholded obscurance of ``volume`` classified by ``transfer``: ``(D, H, W)``,

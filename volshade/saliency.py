@@ -11,7 +11,8 @@ Here $(A, B, C)$ is :func:`volshade.gradient.regression_gradient`: eq. 4's sums
 $\sum_k w(k) O(k) x_i(k)$, each divided by $\sum_k w(k) x_i(k)^2$. With equal
 spacing on the three axes that divisor is one common factor, which the scaling by
 the maximum removes, so $S$ is eq. 4's. With unequal spacing each axis has its own
-divisor, which makes $(A, B, C)$ the gradient in mm (exact for linear fields);
+divisor, which makes $(A, B, C)$ the gradient in mm (exact for linear fields away from
+the border, see :func:`~volshade.gradient.regression_gradient`);
 eq. 4's raw sums would weigh the long axis more, and $S$ differs from them there.
 
 Viewpoint saliency (section 5.2, eq. 6) sums the voxel saliency weighted by the
@@ -50,6 +51,7 @@ from .gradient import _WEIGHTS, _check_size, gradient_magnitude, regression_grad
 from .obscurance import (
     _check_smoothing,
     _d_max_problems,
+    _d_max_without_gradient,
     _direction_array,
     _gaussian_smooth,
     _line_groups,
@@ -84,7 +86,8 @@ def saliency(
     r"""Voxel saliency: the scaled magnitude of the obscurance gradient (eq. 4, section 4).
 
     $S(p) = |\nabla O(p)| / \max_q |\nabla O(q)|$, with $\nabla O$ from
-    :func:`volshade.gradient.regression_gradient` (exact for linear fields). For
+    :func:`volshade.gradient.regression_gradient` (exact for linear fields, but in
+    the outer ``size // 2`` layers of the volume, which are edge-extended). For
     a multi-channel (e.g. RGB colour-bleeding) obscurance the magnitude is the
     Frobenius norm over channels and components. A constant field gives exactly 0
     everywhere (the central differences cancel exactly); where the maximum
@@ -437,7 +440,7 @@ def modulate_opacity(
     """
     where = "volshade.saliency.modulate_opacity"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
-    saliency = _checks.volume(saliency, "saliency", where, unit_range=True).astype(opacity.dtype)
+    saliency = _saliency_volume(saliency, where).astype(opacity.dtype)
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same shape, got "
                          f"{saliency.shape} and {opacity.shape}.")
@@ -455,10 +458,19 @@ def opacity_factor(
 
     $f = 0$ where $S <$ ``threshold``, else $b\, S^m$ ($b$, $m$ as in
     :func:`modulate_opacity`). The renderer multiplies interpolated opacities by it.
-    Errors as :func:`modulate_opacity`'s.
+    Errors as :func:`modulate_opacity`'s; an integer ``saliency`` (a 0/1 mask) is taken
+    as float.
     """
-    return _opacity_factor(saliency, threshold, multiply, boost_top,
-                           "volshade.saliency.opacity_factor")
+    where = "volshade.saliency.opacity_factor"
+    saliency = _saliency_volume(saliency, where)
+    return _opacity_factor(saliency, threshold, multiply, boost_top, where)
+
+
+def _saliency_volume(saliency, where: str) -> Array:
+    """``saliency`` checked as a ``(D, H, W)`` volume of finite values in [0, 1]."""
+    return _checks.volume(saliency, "saliency", where, unit_range=True,
+                          hint="(a scaled saliency: `volshade.saliency.saliency` divides "
+                               "by its maximum)")
 
 
 def _opacity_factor(saliency, threshold, multiply, boost_top, where: str, *,
@@ -514,7 +526,8 @@ class SaliencyModulation(eqx.Module):
     saliency (:func:`saliency`), and the renderer multiplies every sample's
     opacity by :func:`volshade.saliency.opacity_factor` of it. ``threshold`` and
     ``d_max`` are array leaves (changing them does not recompile); the rest is
-    static. ``d_max`` gets a gradient; ``threshold`` does not (the factor is a step
+    static. ``d_max`` gets a gradient (but with ``multiply=False`` or ``rho="ao"``,
+    where the factor is a step in it); ``threshold`` does not (the factor is a step
     at the threshold, so its derivative there is 0 almost everywhere).
 
     Attributes:
@@ -570,7 +583,11 @@ class SaliencyModulation(eqx.Module):
 
     def _without_gradient(self) -> dict[str, str]:
         """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
-        return {"threshold": "the opacity factor is a step at the threshold"}
+        steps = {"threshold": "the opacity factor is a step at the threshold"}
+        if not self.multiply:
+            steps["d_max"] = ("with multiply=False the opacity factor takes the values 0, 1 "
+                              "and 2 only, a step in the saliency")
+        return {**steps, **_d_max_without_gradient(self.rho)}
 
     def __call__(self, volume: Float[Array, "D H W"], transfer,
                  spacing: float | tuple[float, float, float] = 1.0) -> Float[Array, "D H W"]:
@@ -581,6 +598,7 @@ class SaliencyModulation(eqx.Module):
             density = _gaussian_smooth(density, self.smoothing)
         obs = obscurance(density, directions=icosphere_points(self.level), d_max=self.d_max,
                          rho=self.rho)
-        return opacity_factor(saliency(obs, size=self.size, spacing=spacing),
-                              threshold=self.threshold, multiply=self.multiply,
-                              boost_top=self.boost_top)
+        # the saliency computed here lies in [0, 1]: no value check in the renderer's trace
+        return _opacity_factor(saliency(obs, size=self.size, spacing=spacing),
+                               self.threshold, self.multiply, self.boost_top,
+                               "volshade.SaliencyModulation")

@@ -127,6 +127,14 @@ def _still_default(value: eqx.Module, kind: type) -> bool:
         return True
 
 
+def _set_to_other_than(value: Any, default: float) -> bool:
+    """Whether a known leaf holds a value other than ``default`` (traced: taken as not)."""
+    try:
+        return bool(jnp.any(jnp.asarray(value) != default))
+    except jax.errors.ConcretizationTypeError:
+        return False
+
+
 class Scene(eqx.Module):
     """A volume, its classification and the effects to render it with.
 
@@ -263,6 +271,11 @@ class Scene(eqx.Module):
             raise ValueError(f"{_WHERE}: `ambient_volume` is used only with "
                              f"ambient='volume', got ambient={self.ambient!r}; set "
                              f"ambient='volume' or leave `ambient_volume` out.")
+        if self.ambient_volume is not None:
+            shape, ambient_shape = jnp.shape(self.volume), jnp.shape(self.ambient_volume)
+            if ambient_shape not in (shape, (*shape, 3)):
+                raise ValueError(f"{_WHERE}: `ambient_volume` must have the shape of `volume`, "
+                                 f"{shape} (grey) or {(*shape, 3)} (RGB), got {ambient_shape}.")
         for name, (kind, stage, users, _) in _PARAMETERS.items():
             value, option = getattr(self, name), getattr(self, stage)
             if value is None:
@@ -285,6 +298,12 @@ class Scene(eqx.Module):
                             f"{type(self.focus).__name__}.")
         if self.focus is not None and self.composition != "importance":
             raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
+        for path, why in self._unread_leaves().items():
+            stage, name = path.split(".")
+            default = getattr(_PARAMETERS[stage][0](), name)
+            if _set_to_other_than(getattr(getattr(self, stage), name), float(default)):
+                raise ValueError(f"{_WHERE}: `{path}` is not read by this scene ({why}); "
+                                 f"leave it at its default, {float(default):g}.")
         if self.clip is not None:
             if not isinstance(self.clip, Clip):
                 raise TypeError(f"{_WHERE}: `clip` must be a volshade clip shape (e.g. "
@@ -300,6 +319,18 @@ class Scene(eqx.Module):
         if jnp.shape(self.background) != (3,):
             raise ValueError(f"{_WHERE}: `background` must be an RGB triple, "
                              f"got shape {jnp.shape(self.background)}.")
+
+    def _unread_leaves(self) -> dict[str, str]:
+        """Leaves of the effect parameters that this scene's other settings leave unread,
+        by path, with the reason (refused when set, and by :func:`volshade.fit`)."""
+        unread = {}
+        if self.focus is not None:
+            unread["importance.global_weight"] = ("the focus's `inside` and `outside` "
+                                                  "weights replace it on every ray")
+        if self.shading == "obscurance":
+            unread["phong.ambient"] = ("shading='obscurance' takes the obscurance as its "
+                                       "ambient term, with Phong's diffuse and specular")
+        return unread
 
     def plan(self) -> dict[str, str]:
         """The effects a render of this scene computes, by stage."""
