@@ -134,8 +134,9 @@ def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, s
 
 def affected_fraction(shape: tuple[int, int, int], clip: Clip, *, radius: float,
                       brick_size: int = 8) -> float:
-    """The fraction of the bricks :func:`contextual_ao` marches for this clip (a
-    concrete number, for benchmarks and for choosing ``brick_size``)."""
+    """The fraction of the bricks that hold a voxel the clip can change (a concrete
+    number, for benchmarks and for choosing ``brick_size``): what
+    :func:`contextual_ao` marches, up to one half; above, it marches the whole volume."""
     brick_size = _checks.positive_int(brick_size, "brick_size", "volshade.cao.affected_fraction")
     return float(jnp.mean(_bricks_holding(affected_mask(shape, clip, radius=radius),
                                           brick_size)))
