@@ -144,6 +144,12 @@ def test_zero_opacity_sample_changes_nothing(sample_importance):
     out = jcomposite(c2, a2, importance=i2, background=np.array([0.5, 0.5, 0.5]),
                     background_importance=0.5)
     np.testing.assert_allclose(out, base, atol=1e-14)
+    # a colour given with it (not opacity-weighted) is not composited either (its weight
+    # would be (1 - a) / m)
+    c3 = np.insert(c, 3, [0.1, 0.8, 0.3], axis=1)
+    out = jcomposite(c3, a2, importance=i2, background=np.array([0.5, 0.5, 0.5]),
+                     background_importance=0.5)
+    np.testing.assert_allclose(out, base, atol=1e-14)
     # also as the very first sample of a ray
     out = jcomposite(np.insert(c, 0, 0.0, axis=1), np.insert(a, 0, 0.0, axis=1),
                     importance=np.insert(imp, 0, sample_importance, axis=1),
@@ -416,11 +422,13 @@ def test_gradient_at_singular_points_is_finite_for_standard():
 # behind). (A transparent first sample of another importance is a point where eq. 8 is
 # not differentiable: see importance_step.)
 ONE_SIDED_CASES = {
-    "zero_behind_equal": ([0.5, 0.0, 0.5], [0.0, 0.0, 0.0], 1),
-    "zero_behind_important": ([0.5, 0.0, 0.5], [0.0, 3.0, 1.0], 1),
-    "zero_behind_unimportant": ([0.5, 0.0, 0.5], [2.0, -3.0, 1.0], 1),
-    "zero_first_equal": ([0.0, 0.5, 0.5], [0.0, 0.0, 0.0], 0),
-    "opaque_tie": ([1.0, 0.4, 1.0, 0.6], [2.0, 0.0, 3.0, 3.0], 2),
+    "zero_behind_equal": ([0.5, 0.0, 0.5], [0.0, 0.0, 0.0], 1, None),
+    "zero_behind_important": ([0.5, 0.0, 0.5], [0.0, 3.0, 1.0], 1, None),
+    "zero_behind_unimportant": ([0.5, 0.0, 0.5], [2.0, -3.0, 1.0], 1, None),
+    "zero_first_equal": ([0.0, 0.5, 0.5], [0.0, 0.0, 0.0], 0, None),
+    "opaque_tie": ([1.0, 0.4, 1.0, 0.6], [2.0, 0.0, 3.0, 3.0], 2, None),
+    # opaque ties on an opaque ray (y = a = 1 in eq. 8e), with a background importance
+    "opaque_tie_on_opaque": ([1.0, 1.0, 0.0, 0.625, 0.145], [2.0, 0.0, 0.0, 1.0, 2.0], 0, 2.5),
 }
 
 
@@ -429,7 +437,8 @@ def test_gradients_at_alpha_zero_and_one_are_the_one_sided_derivatives(case):
     # The sample's colour is opacity-weighted, C_s = alpha_s c_s, so at alpha_s = 0 the
     # derivative also carries c_s: it was cut to 0 (and the empty ray's came out with the
     # wrong sign) when a transparent sample was skipped.
-    alphas, importances, k = ONE_SIDED_CASES[case]
+    alphas, importances, k, bgi = ONE_SIDED_CASES[case]
+    bgi = -np.inf if bgi is None else bgi
     n = len(alphas)
     base = np.random.default_rng(30).uniform(0.1, 1.0, (n, 3))
     bg = [0.25, 0.5, 0.75]
@@ -438,7 +447,7 @@ def test_gradients_at_alpha_zero_and_one_are_the_one_sided_derivatives(case):
     def reference(alpha_k):
         a = np.asarray(alphas, float)
         a[k] = alpha_k
-        return float(ref.importance(base * a[:, None], a, importances, bg) @ weights)
+        return float(ref.importance(base * a[:, None], a, importances, bg, bgi) @ weights)
 
     h = 1e-6 if alphas[k] == 0 else -1e-6                   # into [0, 1]
     expected = (-3 * reference(alphas[k]) + 4 * reference(alphas[k] + h)
@@ -447,8 +456,7 @@ def test_gradients_at_alpha_zero_and_one_are_the_one_sided_derivatives(case):
     def loss(a_k, grad_fn):
         a = jnp.asarray(alphas).at[k].set(a_k)
         c = jnp.asarray(base) * a[:, None]
-        bgi = jnp.asarray(-jnp.inf)
-        return grad_fn(c, a, jnp.asarray(importances), jnp.asarray(bg), bgi)
+        return grad_fn(c, a, jnp.asarray(importances), jnp.asarray(bg), jnp.asarray(bgi))
 
     for grad_fn in (_loss, _autodiff_loss):                 # composite's adjoint; autodiff
         got = jax.grad(loss)(jnp.asarray(float(alphas[k])), grad_fn)
@@ -521,6 +529,20 @@ def test_dtype_follows_input():
                         importance=jnp.asarray(imp, dtype))
         assert out.dtype == dtype
     assert composite(jnp.asarray(c, jnp.float32), jnp.asarray(a, jnp.float32)).dtype == jnp.float32
+
+
+def test_float32_gradients_where_an_important_sample_takes_over():
+    # p = m alpha_{i+1} / alpha' written as 1 - alpha_s (1 - m) / alpha' cancels where m is
+    # small; a faint sample's gradients, scaled by 1 / alpha_s, came out O(1) wrong
+    a = np.asarray([0.86, 1.0, 0.74, 0.28, 1e-7, 0.74])
+    imp = np.asarray([-0.66, -0.66, -3.1, -3.1, 1e4, 1e4])
+    c = np.random.default_rng(31).uniform(0, 1, (6, 3)) * a[:, None]
+    bg = np.asarray([0.25, 0.5, 0.75])
+    want = _jit_grad(*map(jnp.asarray, (c, a, imp, bg, 0.0)))
+    for fn in (_jit_grad, _jit_autodiff_grad):
+        got = fn(*(jnp.asarray(x, jnp.float32) for x in (c, a, imp, bg, 0.0)))
+        for g, w in zip(got[:2], want[:2], strict=True):
+            np.testing.assert_allclose(g, w, rtol=2e-3, atol=2e-3)
 
 
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])

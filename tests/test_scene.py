@@ -187,6 +187,12 @@ def test_scene_errors():
                                          r"\(shading='obscurance'.*default, 0.35"):
         Scene(volume=_volume(), transfer=tf, ambient="obscurance", shading="obscurance",
               phong=Phong(ambient=0.9))
+    # ... and not refused where they hold their defaults, also when built under jit
+    for effects in ({"ambient": "obscurance", "shading": "obscurance"},
+                    {"composition": "importance", "focus": Focus()}):
+        scene = Scene(volume=_volume(), transfer=tf, **effects)
+        copy = eqx.filter_jit(lambda s: dataclasses.replace(s, step=0.5))(scene)
+        assert copy.step == 0.5
     # effect parameters of the wrong kind, named here rather than failing inside the render
     for name, value, kind in (("lao", 6.0, "LocalAmbientOcclusion"),
                               ("importance", 2.0, "Importance"),

@@ -207,6 +207,7 @@ class _StepTerms(NamedTuple):
     nonempty: Array     # alpha_i > 0
     visible: Array      # alpha' above sqrt(tiny): the step's divisions are taken
     blend: Array        # nonempty and visible: the colour weights of eq. 8a-8d apply
+    direct: Array       # p as m alpha_{i+1} / alpha' (m < 1/2), not 1 - alpha_s (1 - m) / alpha'
     ahead: Array        # K_i > I_s: the accumulated importance dominates
     new_peak: Array     # K_i <= I_s and P_i <= I_s: the sample becomes the peak P_{i+1}
     take_sample: Array  # P_{i+1} = I_s (a new peak, or an empty ray)
@@ -236,8 +237,8 @@ def _step_terms(t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array) -> _St
     zero = jnp.zeros_like(t_acc)
     alpha_acc = 1 - t_acc
     nonempty = alpha_acc > 0
-    # A tie K_i = I_s counts as behind: it arises where an opaque sample of importance I_s
-    # made K = I_s, and any opacity below 1 there puts the next equal importance behind.
+    # A tie K_i = I_s (a kink) counts as behind: the side of an opaque sample of importance
+    # I_s that made K = I_s, where any opacity below 1 puts the next equal importance behind.
     ahead = gap > 0
     new_peak = ~ahead & at_peak
     g = jnp.exp(jnp.where(ahead, -gap, gap))
@@ -257,23 +258,28 @@ def _step_terms(t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array) -> _St
     blend = nonempty & visible
     take_sample = (visible & new_peak) | ~nonempty
     inv_p = 1 / jnp.where(visible, alpha_p, one)
-    # eq. 8a-8d as C_{i+1} = p C_i + q C_s, with p = m alpha_{i+1} / alpha' written as
-    # 1 - alpha_s (1 - m) / alpha' (exactly 1 at alpha_s = 0 or m = 1) and
-    # q = alpha_{i+1} (1 - a) / alpha'. On an empty ray the step is standard compositing,
-    # C_1 = C_0 + T_0 C_s: q = T_0 (= 1) carries the gradient of the transmittance and no
-    # division by alpha_s is needed where alpha_s = 0.
-    p = jnp.where(blend, 1 - alpha_s * (1 - m) * inv_p, one)
+    # eq. 8a-8d as C_{i+1} = p C_i + q C_s, with p = m alpha_{i+1} / alpha' and
+    # q = alpha_{i+1} (1 - a) / alpha'. p = 1 - alpha_s (1 - m) / alpha' is exactly 1 at
+    # alpha_s = 0 or m = 1, but cancels where p is small: there (m < 1/2, so p >= m and
+    # the quotient has no cancellation) p is taken as written first. On an empty ray the
+    # step is standard compositing, C_1 = C_0 + T_0 C_s: q = T_0 (= 1) carries the
+    # gradient of the transmittance and no division by alpha_s is needed.
+    direct = (m < 0.5) & (alpha_s > 0)
+    p = jnp.where(blend, jnp.where(direct, m * alpha_new * inv_p, 1 - alpha_s * (1 - m) * inv_p),
+                  one)
     q = jnp.where(blend, alpha_new * one_minus_a * inv_p, jnp.where(nonempty, zero, t_acc))
     # eq. 8e: K_{i+1} = M + log(num / alpha_{i+1}). alpha_{i+1} is 0 where an empty ray
     # meets alpha_s < eps / 2 (T stays 1); K is kept there.
-    excess = jnp.where(y > a, y - a, zero)
+    # (y - a)^+ at y = a (an opaque sample tied with the next importance) on the side that
+    # an opacity below 1 gives, as `ahead` is
+    excess = jnp.where(y >= a, y - a, zero)
     num = a + alpha_s * excess
     n_ok = visible & (alpha_new > 0)
     inv_n = 1 / jnp.where(n_ok, alpha_new, one)
     ok = n_ok & (num > 0)                              # then num * inv_n >= num > 0
     log_ratio = jnp.log(jnp.where(ok, num * inv_n, one))
-    return _StepTerms(alpha_acc, nonempty, visible, blend, ahead, new_peak, take_sample, g, m,
-                      y, a, one_minus_a, inv_p, alpha_new, p, q, excess, num, inv_n, ok,
+    return _StepTerms(alpha_acc, nonempty, visible, blend, direct, ahead, new_peak, take_sample,
+                      g, m, y, a, one_minus_a, inv_p, alpha_new, p, q, excess, num, inv_n, ok,
                       log_ratio, t_new)
 
 
@@ -287,9 +293,12 @@ def _step(state: ImportanceState, sample: Sample, gp: _Gap) -> ImportanceState:
     offset = jnp.where(tm.ok, base + tm.log_ratio, gp.offset)
     # Straight-through clamp: value min(offset, 0), derivative 1 (it removes rounding only).
     offset = offset - jax.lax.stop_gradient(jnp.maximum(offset, 0))
-    # alpha_s = 0 keeps K exactly (eq. 8e in exact arithmetic; the formula would round it,
-    # and may move it to a new peak), with the formula's derivative: the one-sided limit.
+    # alpha_s = 0 keeps the state exactly, with the formula's derivative (the one-sided
+    # limit): eq. 8e keeps K in exact arithmetic, but the formula would round it and may
+    # move it to a new peak; a colour given with alpha_s = 0 (not opacity-weighted) would
+    # get the weight q = (1 - a) / m.
     zero_alpha = sample.alpha == 0
+    color = value_and_tangent(jnp.where(_expand(zero_alpha), state.color, color), color)
     peak = value_and_tangent(jnp.where(zero_alpha, state.peak_importance, peak), peak)
     offset = value_and_tangent(jnp.where(zero_alpha, state.importance_offset, offset), offset)
     return ImportanceState(color, tm.transmittance, peak, offset)
@@ -332,16 +341,21 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     ray meeting a sample too faint to change $T = 1$, where $K$ is kept). Every
     guarded operation uses the double-``where`` idiom, so gradients are finite at
     $\alpha_s = 0$ and 1 and for importance gaps of $10^4$; at $\alpha_s = 0$ and
-    1 they are the one-sided derivatives (an opacity cannot leave [0, 1]); a tie
-    $K_i = I_s$ is taken as behind, the side that $\alpha < 1$ gives. One point
-    has no derivative: an empty ray meeting transparent samples of different
-    importances (the importance that an opacity rising from 0 there brings to the
-    samples behind depends on which of them rises first, and how fast); the
-    gradient there is that of standard compositing, exact where those samples'
+    1 they are the one-sided derivatives (an opacity cannot leave [0, 1]), of
+    order $1 / (m\,\alpha_i)$ at most behind a transparent sample of high
+    importance, which is what an opacity rising from 0 there does. Two kinds of
+    points have no derivative, and get one side's: a tie $K_i = I_s$ (an equality
+    of importances) is taken as behind, which is the one-sided derivative where
+    an opaque sample made $K = I_s$ (any opacity below 1 puts the next equal
+    importance behind) and not where a transparent sample's opacity would lift
+    $K$ onto a later importance; and on an empty ray meeting transparent samples
+    of different importances (the importance that an opacity rising from 0 brings
+    to the samples behind depends on which of them rises first, and how fast),
+    the gradient is that of standard compositing, exact where those samples'
     importance equals the next ones'. The clamp
     $\delta_{i+1} \le 0$ only removes rounding (the exact value never exceeds 0),
-    so its derivative is taken as 1. A sample with $\alpha_s = 0$ and
-    $C_s = 0$ changes nothing, bit for bit, and with equal importances everywhere
+    so its derivative is taken as 1. A sample with $\alpha_s = 0$ changes
+    nothing, bit for bit (a colour given with it too), and with equal importances everywhere
     $m = 1$ and the step is standard compositing. Only two transcendental
     functions (one ``exp``, one ``log``) are evaluated.
 
@@ -415,17 +429,20 @@ def _importance_step_adjoint(
     lam_num = lam_log / jnp.where(tm.ok, tm.num, 1)
     lam_alpha_new = -lam_log * tm.inv_n
     # num = a + alpha_s * where(y > a, y - a, 0)
-    lam_y = jnp.where(tm.y > tm.a, lam_num * alpha_s, zero)
+    lam_y = jnp.where(tm.y >= tm.a, lam_num * alpha_s, zero)
     lam_a = lam_num - lam_y
     lam_alpha = lam_num * tm.excess
-    # where blend: p = 1 - alpha_s (1 - m) r, q = alpha_{i+1} (1 - a) r with r = 1 / alpha',
-    # alpha' = a + alpha_s (1 - a); on an empty ray q = T_i
-    lam_p = jnp.where(tm.blend, lam_p, zero)
+    # where blend: p = m alpha_{i+1} r (direct) or 1 - alpha_s (1 - m) r,
+    # q = alpha_{i+1} (1 - a) r with r = 1 / alpha', alpha' = a + alpha_s (1 - a); on an
+    # empty ray q = T_i
+    lam_pd = jnp.where(tm.blend & tm.direct, lam_p, zero)
+    lam_pc = jnp.where(tm.blend & ~tm.direct, lam_p, zero)
     lam_qb = jnp.where(tm.blend, lam_q, zero)
-    lam_m = lam_p * alpha_s * tm.inv_p
-    lam_alpha = lam_alpha - lam_p * (1 - tm.m) * tm.inv_p
-    lam_r = lam_qb * tm.alpha_new * tm.one_minus_a - lam_p * (1 - tm.m) * alpha_s
-    lam_alpha_new = lam_alpha_new + lam_qb * tm.one_minus_a * tm.inv_p
+    lam_m = (lam_pd * tm.alpha_new + lam_pc * alpha_s) * tm.inv_p
+    lam_alpha = lam_alpha - lam_pc * (1 - tm.m) * tm.inv_p
+    lam_r = (lam_qb * tm.alpha_new * tm.one_minus_a + lam_pd * tm.m * tm.alpha_new
+             - lam_pc * (1 - tm.m) * alpha_s)
+    lam_alpha_new = lam_alpha_new + (lam_qb * tm.one_minus_a + lam_pd * tm.m) * tm.inv_p
     lam_alpha_p = -lam_r * tm.inv_p * tm.inv_p
     lam_a = lam_a + lam_alpha_p
     lam_oma = lam_qb * tm.alpha_new * tm.inv_p + lam_alpha_p * alpha_s

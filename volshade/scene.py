@@ -10,6 +10,7 @@ the spacing and the sampling step are static, so a fit over the leaves never
 recompiles.
 """
 
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import Any
@@ -300,10 +301,13 @@ class Scene(eqx.Module):
             raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
         for path, why in self._unread_leaves().items():
             stage, name = path.split(".")
-            default = getattr(_PARAMETERS[stage][0](), name)
-            if _set_to_other_than(getattr(getattr(self, stage), name), float(default)):
+            # the field's default as written (a Python number: under jit the built module's
+            # leaves are traced)
+            (default,) = (f.default for f in dataclasses.fields(_PARAMETERS[stage][0])
+                          if f.name == name)
+            if _set_to_other_than(getattr(getattr(self, stage), name), default):
                 raise ValueError(f"{_WHERE}: `{path}` is not read by this scene ({why}); "
-                                 f"leave it at its default, {float(default):g}.")
+                                 f"leave it at its default, {default:g}.")
         if self.clip is not None:
             if not isinstance(self.clip, Clip):
                 raise TypeError(f"{_WHERE}: `clip` must be a volshade clip shape (e.g. "
