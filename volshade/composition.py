@@ -428,7 +428,7 @@ def _importance_step_adjoint(
     lam_to_peak = jnp.where(behind_ok & ~tm.new_peak, lam_k_new, zero)
     lam_num = lam_log / jnp.where(tm.ok, tm.num, 1)
     lam_alpha_new = -lam_log * tm.inv_n
-    # num = a + alpha_s * where(y > a, y - a, 0)
+    # num = a + alpha_s * where(y >= a, y - a, 0)
     lam_y = jnp.where(tm.y >= tm.a, lam_num * alpha_s, zero)
     lam_a = lam_num - lam_y
     lam_alpha = lam_num * tm.excess
