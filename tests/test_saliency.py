@@ -297,6 +297,10 @@ def test_errors():
             opacity_factor(v, boost_top=bad)
         with pytest.raises(ValueError, match="boost_top"):
             SaliencyModulation(boost_top=bad)
+    # a concrete scalar array is stored as the number (a static field compares by value)
+    for given in (jnp.asarray(0.25), np.float32(0.25), jnp.asarray(1)):
+        kept = SaliencyModulation(boost_top=given).boost_top
+        assert type(kept) is float and kept == float(given)
     # opacity_factor checks its saliency as modulate_opacity does, with a saliency's hint
     for fn in (opacity_factor, lambda s: modulate_opacity(jnp.ones_like(s), s)):
         with pytest.raises(Exception, match="`saliency` contains NaN"):
