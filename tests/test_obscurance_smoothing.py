@@ -59,8 +59,9 @@ def test_smoothing_must_be_a_finite_number_at_least_zero(bad, module):
 
 
 def test_smoothing_accepts_numpy_numbers_and_blurs_integer_volumes_as_floats():
-    for sigma in (np.float32(1.0), np.int64(1)):
-        assert vs.ObscuranceParams(smoothing=sigma).smoothing == 1.0
+    for sigma in (np.float32(1.0), np.int64(1), jnp.asarray(1.0), np.asarray(1)):
+        kept = vs.ObscuranceParams(smoothing=sigma).smoothing
+        assert type(kept) is float and kept == 1.0
     ints = jnp.arange(216, dtype=jnp.int32).reshape(6, 6, 6)
     blurred = _gaussian_smooth(ints, 1.0)
     assert jnp.issubdtype(blurred.dtype, jnp.floating)

@@ -822,9 +822,14 @@ _DENSITIES = ("opacity", "intensity")
 
 
 def _static_number(value):
-    """A real number as a Python float (a NumPy scalar as a static field would make
-    equinox warn, and compare by identity); anything else is left for the check."""
+    """A real number, or a concrete scalar array of one, as a Python float (a NumPy
+    scalar or an array as a static field would make equinox warn, and compare by
+    identity); anything else is left for the check."""
     if isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_):
+        return float(value)
+    if (isinstance(value, np.ndarray | jax.Array) and not isinstance(value, jax.core.Tracer)
+            and value.shape == () and (jnp.issubdtype(value.dtype, jnp.floating)
+                                       or jnp.issubdtype(value.dtype, jnp.integer))):
         return float(value)
     return value
 

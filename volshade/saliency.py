@@ -518,16 +518,6 @@ def _boost_top(value, where: str) -> float | None:
     return float(value)
 
 
-def _static_fraction(value):
-    """A concrete scalar array as a Python float (an array in a static field makes
-    equinox warn and compares by identity); anything else is left for the check."""
-    if (isinstance(value, np.ndarray | jax.Array) and not isinstance(value, jax.core.Tracer)
-            and value.shape == () and (jnp.issubdtype(value.dtype, jnp.floating)
-                                       or jnp.issubdtype(value.dtype, jnp.integer))):
-        return float(value)
-    return _static_number(value)
-
-
 class SaliencyModulation(eqx.Module):
     """Saliency-driven opacity modulation for a :class:`volshade.Scene` (section 5.2).
 
@@ -571,7 +561,7 @@ class SaliencyModulation(eqx.Module):
     level: int = eqx.field(static=True, default=1)
     size: int = eqx.field(static=True, default=5)
     multiply: bool = eqx.field(static=True, default=True)
-    boost_top: float | None = eqx.field(static=True, default=None, converter=_static_fraction)
+    boost_top: float | None = eqx.field(static=True, default=None, converter=_static_number)
     smoothing: float = eqx.field(static=True, default=0.0, converter=_static_number)
 
     def __check_init__(self):
