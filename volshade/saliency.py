@@ -507,10 +507,7 @@ def _boost_top(value, where: str) -> float | None:
     if isinstance(value, jax.core.Tracer):
         raise TypeError(f"{where}: `boost_top` sets which voxels are doubled and must be a "
                         f"static number, not a traced value; close over it instead.")
-    if isinstance(value, np.ndarray | jax.Array) and value.shape == () and (
-            jnp.issubdtype(value.dtype, jnp.floating) or jnp.issubdtype(value.dtype,
-                                                                        jnp.integer)):
-        value = float(value)
+    value = _static_number(value)     # a concrete scalar array as the number
     if (isinstance(value, bool) or not isinstance(value, numbers.Real)
             or not 0 < value <= 1):
         raise ValueError(f"{where}: `boost_top` must be None or a fraction in (0, 1] (the "
