@@ -419,8 +419,9 @@ def test_gradient_at_singular_points_is_finite_for_standard():
 # transparent sample behind a nonempty ray (equal and unequal importances), a transparent
 # first sample of the importance of the samples behind it, and an opaque sample that ties
 # the next sample's importance (K = I_s exactly; any opacity below 1 puts that sample
-# behind). (A transparent first sample of another importance is a point where eq. 8 is
-# not differentiable: see importance_step.)
+# behind). (A transparent first sample of another importance, and a transparent sample
+# that would lift K onto a later importance, are points where eq. 8 is not
+# differentiable: see importance_step.)
 ONE_SIDED_CASES = {
     "zero_behind_equal": ([0.5, 0.0, 0.5], [0.0, 0.0, 0.0], 1, None),
     "zero_behind_important": ([0.5, 0.0, 0.5], [0.0, 3.0, 1.0], 1, None),
@@ -552,17 +553,17 @@ def test_half_precision_is_composited_in_float32(dtype):
     a = jnp.asarray([0.9, 2e-3, 0.5], dtype)
     imp = jnp.asarray([0.0, 1.0, 0.0], dtype)
 
-    def loss(a, imp, dtype_out):
+    def loss(a, imp):
         c = a[:, None] * jnp.eye(3, dtype=a.dtype)
-        return composite(c, a, importance=imp).astype(dtype_out).sum()
+        return composite(c, a, importance=imp).astype(jnp.float32).sum()
 
     out = composite(a[:, None] * jnp.eye(3, dtype=dtype), a, importance=imp)
     assert out.dtype == dtype
     wide = [x.astype(jnp.float32) for x in (a, imp)]
     np.testing.assert_array_equal(out, composite(wide[0][:, None] * jnp.eye(3), wide[0],
                                                  importance=wide[1]).astype(dtype))
-    got = jax.grad(loss, argnums=(0, 1))(a, imp, jnp.float32)
-    want = jax.grad(loss, argnums=(0, 1))(*wide, jnp.float32)
+    got = jax.grad(loss, argnums=(0, 1))(a, imp)
+    want = jax.grad(loss, argnums=(0, 1))(*wide)
     for g, w in zip(got, want, strict=True):
         assert g.dtype == dtype and np.all(np.isfinite(np.asarray(g, np.float32)))
         np.testing.assert_allclose(np.asarray(g, np.float32), w, rtol=1e-2, atol=1e-3)
