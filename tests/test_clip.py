@@ -131,3 +131,23 @@ def test_half_precision_clips_are_measured_in_float32():
     for fn in (lambda c: vs.clip_mask((8, 300, 8), c),
                lambda c: vs.affected_mask((8, 300, 8), c, radius=2.0)):
         np.testing.assert_array_equal(np.asarray(fn(half)), np.asarray(fn(exact)))
+
+
+def test_affected_mask_covers_the_rounding_of_large_float32_clips():
+    # a torus of major radius 1e7 whose tube passes through a small volume: float32
+    # rounds its phi by up to half a voxel there (the ulp of 1e7 is 1), so a margin
+    # scaled by the volume and the centre alone left voxels within reach unmarked
+    clip = vs.TorusClip(center=jnp.asarray([8.0, 8.0, 8.0], jnp.float32),
+                        major=jnp.asarray(1e7, jnp.float32),
+                        minor=jnp.asarray(1e7 - 10, jnp.float32),
+                        rotation=jnp.eye(3, dtype=jnp.float32))
+    shape = (16, 16, 16)
+    assert clip.signed_distance(jnp.zeros(3, jnp.float32)).dtype == jnp.float32
+    local = np.stack(np.meshgrid(*map(np.arange, shape), indexing="ij"), -1) - 8.0
+    ring = np.hypot(local[..., 1], local[..., 2]) - float(clip.major)
+    phi = np.hypot(local[..., 0], ring) - float(clip.minor)  # float64: exact to 1e-9
+    for radius in (3.0, 4.0, 5.0):
+        affected = np.asarray(vs.affected_mask(shape, clip, radius=radius))
+        within = phi < radius + np.sqrt(3)
+        assert 0 < within.sum() < within.size
+        assert np.all(affected[within]), radius

@@ -45,7 +45,7 @@ from ._numerics import safe_sqrt
 from ._types import Array, ArrayLike, Bool, Float
 
 # voxels: the rounding of phi must not make an affected voxel look safe; the relative
-# part covers float32 coordinates of large volumes and far centres
+# part covers float32 coordinates of large volumes, far centres and large clips
 _REACH_MARGIN, _REACH_RELATIVE_MARGIN = 1e-3, 64
 
 
@@ -240,7 +240,11 @@ def _removed(distances: Array) -> Array:
 
 
 def _within_reach(distances: Array, radius, clip: Clip) -> Array:
-    scale = max(distances.shape) + jnp.max(jnp.abs(clip.center))
+    # phi rounds relative to the largest number it is computed from: the coordinates,
+    # the centre and the sizes (a torus of major radius 1e7 rounds phi by half a voxel
+    # in float32 wherever its tube passes, however small the volume)
+    sizes = [jnp.max(jnp.abs(getattr(clip, name))) for name in clip.sizes]
+    scale = max(distances.shape) + jnp.max(jnp.abs(clip.center)) + sum(sizes)
     margin = _REACH_MARGIN + _REACH_RELATIVE_MARGIN * jnp.finfo(distances.dtype).eps * scale
     return distances < jnp.asarray(radius, distances.dtype) + math.sqrt(3) + margin
 
