@@ -460,6 +460,12 @@ def test_non_finite_parameters_are_refused_by_name(jit):
     for scene, camera, name in cases:
         with pytest.raises(Exception, match=re.escape(f"`{name}` contains NaN or inf")):
             jax.block_until_ready(render(scene, camera))
+    # the volume is the render's to refuse, before an effect classifies it
+    holed = vol.at[3, 4, 5].set(jnp.nan)
+    for ambient in ("none", "lao", "obscurance"):
+        with pytest.raises(Exception, match=re.escape("volshade.render: `volume` contains NaN")):
+            jax.block_until_ready(render(vs.Scene(volume=holed, transfer=tf, ambient=ambient),
+                                         cam))
 
 
 @pytest.mark.slow

@@ -463,6 +463,9 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
                         f"volshade.Scene(volume=..., transfer=...).")
     _check_cameras(camera)
     scene, camera = _finite_parameters(scene, camera)
+    # the volume first, so a NaN in it is named as the render's, not as the first effect's
+    scene = eqx.tree_at(lambda s: s.volume, scene,
+                        _checks.finite(scene.volume, "volume", "volshade.render"))
     cameras = [camera] if isinstance(camera, Camera) else list(camera)
     ambient = AMBIENT[scene.ambient](scene)
     opacity_scale = MODULATION[scene.modulation](scene)
