@@ -408,10 +408,12 @@ def test_bad_inputs_raise_clear_errors():
         lao(alpha, directions=dirs, radius=0.5, offset=0.0, max_radius=True)
 
 
-def test_bad_values_raise_under_jit():
+@pytest.mark.parametrize("samples", [16, 1])  # M = 1 takes no sample but checks as much
+def test_bad_values_raise_under_jit(samples):
     alpha = jnp.full((8, 8, 8), 0.5, jnp.float32)
     dirs = vdirs.fibonacci(4)
-    f = jax.jit(lambda a, r, o: lao(a, directions=dirs, radius=r, offset=o, max_radius=8.0))
+    f = jax.jit(lambda a, r, o: lao(a, directions=dirs, radius=r, offset=o, samples=samples,
+                                    max_radius=8.0))
     with pytest.raises(Exception, match="radius"):
         jax.block_until_ready(f(alpha, 1.0, 2.0))
     with pytest.raises(Exception, match=r"\[0, 1\]"):
@@ -422,6 +424,6 @@ def test_bad_values_raise_under_jit():
         jax.block_until_ready(f(alpha, 9.0, 1.0))
     with pytest.raises(Exception, match="`radius` finite"):
         jax.block_until_ready(f(alpha, jnp.nan, 1.0))
-    g = jax.jit(lambda w: lao(alpha, directions=dirs, radius=3.0, weights=w))
+    g = jax.jit(lambda w: lao(alpha, directions=dirs, radius=3.0, samples=samples, weights=w))
     with pytest.raises(Exception, match="weights"):
         jax.block_until_ready(g(jnp.asarray([1.0, -1.0, 0.0, 0.0])))

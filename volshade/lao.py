@@ -816,8 +816,11 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
          max_active, implementation):
     """The validated computation, compiled once per shape and static options."""
     if samples == 1:
-        # eq. 3 with M = 1 is a single term with an empty product: no sample is taken
-        return jnp.ones_like(alpha)
+        # eq. 3 with M = 1 is a single term with an empty product: no sample is taken.
+        # The ones still read every checked input: under jit a result that ignored them
+        # would let XLA prune their run-time checks (a NaN opacity would give AO = 1)
+        inputs = alpha + (radius + offset + jnp.sum(weights) + jnp.sum(dirs))
+        return jnp.ones_like(alpha) + 0 * inputs
     if implementation == "pallas":
         # imported here: Pallas is loaded only by those who ask for it
         from . import _lao_pallas
