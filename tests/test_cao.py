@@ -196,6 +196,24 @@ def test_bad_inputs_raise_clear_errors():
         vs.contextual_ao(ALPHA, clip=CLIPS["box"], unclipped=unclipped, brick_size=0, **KW)
 
 
+@pytest.mark.parametrize("samples", [6, 1])  # M = 1 takes no sample but checks as much
+def test_bad_values_raise_under_jit(samples):
+    kw = dict(KW, samples=samples, max_radius=4.0)
+    alpha = jnp.full((8, 8, 8), 0.5)
+    unclipped = vs.lao(alpha, **kw)
+    f = jax.jit(lambda a, u, c, r: vs.contextual_ao(a, clip=c, unclipped=u, **dict(kw, radius=r)))
+    sphere = vs.SphereClip(center=(4.0, 4.0, 4.0), radius=2.0)
+    with pytest.raises(Exception, match="NaN"):
+        jax.block_until_ready(f(alpha.at[0, 0, 0].set(jnp.nan), unclipped, sphere, 3.5))
+    with pytest.raises(Exception, match="unclipped"):
+        jax.block_until_ready(f(alpha, unclipped + 1, sphere, 3.5))
+    with pytest.raises(Exception, match="finite"):
+        jax.block_until_ready(f(alpha, unclipped, eqx.tree_at(lambda c: c.center, sphere,
+                                                               jnp.full(3, jnp.nan)), 3.5))
+    with pytest.raises(Exception, match="radius"):
+        jax.block_until_ready(f(alpha, unclipped, sphere, 0.25))
+
+
 def test_scene_clips_the_render_and_the_lao_ambient():
     from volshade.scene import _lao_ambient
 

@@ -38,8 +38,8 @@ from jax import lax
 
 from . import _checks
 from ._types import ArrayLike, Float, Volume
-from .clip import Clip, _clip, _removed, _voxel_distances, _within_reach, affected_mask
-from .lao import _MAX_ACTIVE_FRACTION, _bricked, _bricks_holding, _marchers, _prepare
+from .clip import Clip, _checked, _clip, _removed, _voxel_distances, _within_reach, affected_mask
+from .lao import _MAX_ACTIVE_FRACTION, _bricked, _bricks_holding, _marchers, _prepare, _unoccluded
 
 _WHERE = "volshade.contextual_ao"
 
@@ -117,8 +117,8 @@ def contextual_ao(
 def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, samples,
                 correction, brick_size, max_active):
     """The validated computation, compiled once per shape and static options."""
-    if samples == 1:
-        return jnp.ones_like(alpha)  # eq. 2 with M = 1: an empty product, clip or not
+    if samples == 1:  # eq. 2 with M = 1: an empty product, clip or not
+        return _unoccluded(alpha, unclipped, _checked(clip), dirs, weights, radius, offset)
     distances = _voxel_distances(alpha.shape, clip)
     clipped = jnp.where(_removed(distances), jnp.zeros_like(alpha), alpha)
 

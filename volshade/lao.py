@@ -73,7 +73,7 @@ backward pass as one FFT convolution, so bricked gradients equal unbricked ones.
 
 import functools
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -811,16 +811,21 @@ def lao(
                 max_active=_MAX_ACTIVE_FRACTION, implementation=implementation)
 
 
+def _unoccluded(alpha: Array, *checked: Any) -> Array:
+    """AO = 1 everywhere, for ``samples = 1`` (eq. 3 with M = 1 is a single term with an
+    empty product: no sample is taken), computed from ``alpha`` and the array leaves of
+    ``checked``: under jit a result that ignored the checked inputs would let XLA prune
+    their run-time checks (a NaN opacity would give AO = 1)."""
+    read = sum(jnp.sum(x) for x in jax.tree_util.tree_leaves(eqx.filter(checked, eqx.is_array)))
+    return jnp.ones_like(alpha) + 0 * (alpha + read).astype(alpha.dtype)
+
+
 @eqx.filter_jit
 def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, brick_size,
          max_active, implementation):
     """The validated computation, compiled once per shape and static options."""
     if samples == 1:
-        # eq. 3 with M = 1 is a single term with an empty product: no sample is taken.
-        # The ones still read every checked input: under jit a result that ignored them
-        # would let XLA prune their run-time checks (a NaN opacity would give AO = 1)
-        inputs = alpha + (radius + offset + jnp.sum(weights) + jnp.sum(dirs))
-        return jnp.ones_like(alpha) + 0 * inputs
+        return _unoccluded(alpha, dirs, weights, radius, offset)
     if implementation == "pallas":
         # imported here: Pallas is loaded only by those who ask for it
         from . import _lao_pallas
