@@ -75,7 +75,8 @@ def contextual_ao(
         brick_size: edge (voxels) of the bricks that are marched or kept whole.
 
     Returns:
-        ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``alpha``.
+        ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``alpha`` (computed in float32
+        at least: half precision is widened for the march and the result rounded).
 
     Raises:
         ValueError: ``unclipped`` of another shape than ``alpha``, ``brick_size < 1``,
@@ -110,7 +111,7 @@ def contextual_ao(
     return _contextual(p.alpha, unclipped.astype(p.alpha.dtype), clip, p.directions,
                        p.weights, p.radius, p.offset, pad=p.pad, samples=p.samples,
                        correction=p.correction, brick_size=brick_size,
-                       max_active=_MAX_ACTIVE_FRACTION)
+                       max_active=_MAX_ACTIVE_FRACTION).astype(p.dtype)
 
 
 @eqx.filter_jit

@@ -540,9 +540,7 @@ def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
     frac = positions - floor
     base = floor.astype(jnp.int32) + jnp.asarray(pad)[None, None, :]
     scale = suffix.reshape(-1)[:, None] * weights[None]
-    # the FFT needs float32 at least (no half-precision FFT); the result is cast back
-    work = jnp.promote_types(cotangent.dtype, jnp.float32)
-    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), work)
+    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), cotangent.dtype)
     for corner, weight in _corner_weights(tuple(frac[..., ax] for ax in range(3))):
         # offsets beyond the padding reach no voxel; send them past the end to be
         # dropped (a negative index would wrap around, like NumPy's)
@@ -553,8 +551,8 @@ def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
         kernel = kernel.at[where].add((scale * weight).reshape(-1), mode="drop")
     kappa = step if correction else 1
     d_alpha = -(kappa / samples) * fftconvolve(
-        jnp.where(skipped, cotangent, 0).astype(work), kernel, mode="same")
-    return (None, d_alpha.astype(cotangent.dtype), jnp.zeros_like(directions),
+        jnp.where(skipped, cotangent, 0), kernel, mode="same")
+    return (None, d_alpha, jnp.zeros_like(directions),
             jnp.zeros_like(weights), jnp.zeros_like(radius), jnp.zeros_like(offset))
 
 
@@ -634,6 +632,7 @@ class _Prepared(NamedTuple):
     """Validated inputs of a march (see :func:`_prepare`)."""
 
     alpha: Array
+    dtype: jnp.dtype
     directions: Array
     weights: Array
     radius: Array
@@ -647,9 +646,14 @@ class _Prepared(NamedTuple):
 def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_correction,
              brick_size, max_radius, where: str) -> _Prepared:
     """Check and normalise :func:`lao`'s arguments (errors name ``where``): the opacity,
-    unit directions, weights summing to 1, radius and offset as scalars of the opacity's
-    dtype, and the zero padding the march needs."""
+    unit directions, weights summing to 1, radius and offset as scalars of the working
+    dtype, and the zero padding the march needs. The march works in the opacity's dtype,
+    half precision widened to float32 (as the Pallas kernels and the FFT of the skipped
+    bricks' gradient need; the radius and offset are then not rounded to half
+    precision), and ``dtype`` is the opacity's own, for the result."""
     alpha = _checks.volume(alpha, "alpha", where, unit_range=True)
+    result_dtype = alpha.dtype
+    alpha = _checks.at_least_float32(alpha)
     dtype = alpha.dtype
     samples = _checks.positive_int(samples, "samples", where)
     opacity_correction = _checks.flag(opacity_correction, "opacity_correction", where)
@@ -702,8 +706,8 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
               else tuple(-(-s // brick_size) * brick_size for s in alpha.shape))
     pad = tuple(e if bound is None else min(e, math.ceil(bound) + 1) for e in extent)
 
-    return _Prepared(alpha, dirs, weights, radius, offset, pad, samples, opacity_correction,
-                     brick_size)
+    return _Prepared(alpha, result_dtype, dirs, weights, radius, offset, pad, samples,
+                     opacity_correction, brick_size)
 
 
 def lao(
@@ -775,7 +779,8 @@ def lao(
             been timed on a GPU, hence not the default.
 
     Returns:
-        ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``alpha``.
+        ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``alpha`` (computed in float32
+        at least: half precision is widened for the march and the result rounded).
 
     Raises:
         ValueError: ``alpha`` not 3-D, bad ``directions``/``weights`` shape, empty
@@ -808,7 +813,7 @@ def lao(
                  brick_size=brick_size, max_radius=max_radius, where=_WHERE)
     return _lao(p.alpha, p.directions, p.weights, p.radius, p.offset, pad=p.pad,
                 samples=p.samples, correction=p.correction, brick_size=p.brick_size,
-                max_active=_MAX_ACTIVE_FRACTION, implementation=implementation)
+                max_active=_MAX_ACTIVE_FRACTION, implementation=implementation).astype(p.dtype)
 
 
 def _unoccluded(alpha: Array, *checked: Any) -> Array:
