@@ -570,8 +570,9 @@ def _concrete(x) -> float | None:
         arr = np.asarray(x)
     except Exception:  # noqa: BLE001 - anything not convertible is treated as traced
         return None
-    if arr.shape != () or not np.issubdtype(arr.dtype, np.number):
-        return None
+    if arr.shape != () or not (np.issubdtype(arr.dtype, np.integer)
+                               or np.issubdtype(arr.dtype, np.floating)):
+        return None  # a complex number is refused by name later, by _scalar
     return float(arr)
 
 
@@ -587,6 +588,7 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
         raise TypeError(f"{where}: `directions` must be an (L, 3) array of unit vectors "
                         f"(e.g. `volshade.directions.icosphere(1)`) or an int L, "
                         f"got {type(directions).__name__}.") from err
+    dirs = _checks.as_float_array(dirs, "directions", where)  # refuses complex numbers
     if dirs.ndim != 2 or dirs.shape[-1] != 3:
         raise ValueError(f"{where}: `directions` must have shape (L, 3) in (d, h, w) order, "
                          f"got {tuple(dirs.shape)}; use `volshade.directions.fibonacci(L)`.")
@@ -608,10 +610,10 @@ def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
     if isinstance(value, bool | np.bool_ | str | bytes):
         raise TypeError(f"{where}: `{name}` must be a number (voxels), got {value!r}.")
     try:
-        arr = jnp.asarray(value, dtype=dtype)
+        arr = _checks.as_float_array(value, name, where).astype(dtype)  # refuses complex
     except TypeError as err:
-        raise TypeError(f"{where}: `{name}` must be a number (voxels), "
-                        f"got {type(value).__name__}.") from err
+        raise TypeError(f"{where}: `{name}` must be a real number (voxels), "
+                        f"got {value!r}.") from err
     if arr.shape != ():
         raise ValueError(f"{where}: `{name}` must be a scalar (voxels), got shape "
                          f"{arr.shape}; for several values use `jax.vmap`.")

@@ -141,7 +141,8 @@ class _Group(NamedTuple):
 def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     """Concrete ``(L, 3)`` directions as float64 numpy (they set the traced program)."""
     try:
-        dirs = np.asarray(directions, dtype=np.float64)
+        complex_numbers = np.iscomplexobj(directions)
+        dirs = np.asarray(directions, dtype=None if complex_numbers else np.float64)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError) as err:
         raise TypeError(
             f"{where}: `{name}` must be concrete (numpy or a JAX array outside `jit`), not "
@@ -153,6 +154,9 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     except (TypeError, ValueError) as err:
         raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, "
                         f"got {type(directions).__name__}.") from err
+    if complex_numbers:  # converted, they would have lost their imaginary part
+        raise TypeError(f"{where}: `{name}` must be real (L, 3) directions, got complex "
+                        f"numbers.")
     if dirs.ndim == 0:
         raise TypeError(
             f"{where}: `{name}` must be an (L, 3) array of directions, got the number "
@@ -378,16 +382,17 @@ def _occluder_index(steps: Array, off_b: Array, off_c: Array) -> tuple[Array, Ar
 def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
     """``d_max`` as a scalar array: refused at once when concrete, at run time when
     traced (``_checks.refuse``)."""
-    if d_max is None or isinstance(d_max, bool | str | bytes) or (
-            isinstance(d_max, np.ndarray | jax.Array)
-            and not (jnp.issubdtype(d_max.dtype, jnp.floating)
-                     or jnp.issubdtype(d_max.dtype, jnp.integer))):
+    if d_max is None or isinstance(d_max, bool | str | bytes):
         raise TypeError(f"{where}: `d_max` must be a number (voxels), got {d_max!r}.")
     try:
-        arr = jnp.asarray(d_max, dtype)
+        arr = jnp.asarray(d_max)
     except TypeError as err:
         raise TypeError(f"{where}: `d_max` must be a number, got {type(d_max).__name__}.") \
             from err
+    # a bool would pass as 0 or 1, and a complex number would lose its imaginary part
+    if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.integer)):
+        raise TypeError(f"{where}: `d_max` must be a real number (voxels), got {d_max!r}.")
+    arr = arr.astype(dtype)
     if arr.ndim != 0:
         raise ValueError(f"{where}: `d_max` must be a scalar (voxels), got shape {arr.shape}; "
                          f"for several values use `jax.vmap`.")
