@@ -9,8 +9,8 @@
 # %% [markdown]
 # # Colour bleeding on the corner phantom (Ruiz et al. 2008, Figure 4, first row)
 #
-# Three adjacent opaque walls (floor at low d: white, wall at low h: blue, wall
-# at low w: green), the rest transparent. We compute colour-bleeding obscurances
+# Three adjacent opaque walls (floor at low d: white, wall at low h: green, wall
+# at low w: blue), the rest transparent. We compute colour-bleeding obscurances
 # with 42 directions for the four rho functions of section 3.2, show slices of
 # the RGB obscurance volume (wall voxels drawn in their own colour), and render
 # the scene with the obscurance as its ambient term.
@@ -85,8 +85,8 @@ for r, (label, d) in enumerate(rows.items()):
         ax = axes[r, c]
         ax.imshow(np.clip(image, 0, 1), origin="upper")
         ax.set_title(f"rho = {rho}\n{label} (d = {d})", fontsize=9)
-        ax.set_xlabel("w (green wall at left)", fontsize=8)
-        ax.set_ylabel("h (blue wall at top)", fontsize=8)
+        ax.set_xlabel("w (blue wall at left)", fontsize=8)
+        ax.set_ylabel("h (green wall at top)", fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
 fig.suptitle(f"Colour-bleeding obscurances, corner phantom {N}^3, 42 directions, "
@@ -106,8 +106,8 @@ t = thickness
 probes = {
     "corner": (t, t, t),
     "floor middle": (t, N // 2, N // 2),
-    "next to green": (N // 2, N // 2, t),
-    "next to blue": (N // 2, t, N // 2),
+    "next to green": (N // 2, t, N // 2),
+    "next to blue": (N // 2, N // 2, t),
     "centre": (N // 2, N // 2, N // 2),
 }
 lines = ["| rho | " + " | ".join(probes) + " |", "|---" * (len(probes) + 1) + "|"]

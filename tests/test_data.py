@@ -117,8 +117,8 @@ def test_corner_walls(shape):
     white, blue, green = (np.float32(data.CORNER_VALUES[k]) for k in ("white", "blue", "green"))
     assert (white, blue, green) == (1.0, 0.75, 0.5)
     assert np.all(v[:td] == white)  # floor at small d, wins where it meets the others
-    assert np.all(v[td:, :th, :] == blue)  # wall at small h (max with green at the edge)
-    assert np.all(v[td:, th:, :tw] == green)  # wall at small w
+    assert np.all(v[td:, :, :tw] == blue)  # wall at small w (max with green at the edge)
+    assert np.all(v[td:, :th, tw:] == green)  # wall at small h
     assert np.all(v[td:, th:, tw:] == 0.0)  # empty interior
     assert set(np.unique(v).tolist()) == {0.0, 0.5, 0.75, 1.0}
 
@@ -126,7 +126,7 @@ def test_corner_walls(shape):
 def test_corner_paper_size():
     v = np.asarray(data.phantom("corner", shape=128))
     assert np.all(v[:8] == 1.0) and np.all(v[8:, 8:, 8:] == 0.0)
-    assert v[8, 7, 64] == 0.75 and v[8, 64, 7] == 0.5
+    assert v[8, 7, 64] == 0.5 and v[8, 64, 7] == 0.75
 
 
 @pytest.mark.parametrize("n", [32, 64])

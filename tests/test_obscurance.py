@@ -36,10 +36,10 @@ def random_volume(shape, seed, *, levels=None):
 
 
 def corner(n, thickness=2):
-    """Corner phantom: opacity 1 on three walls (d: white, h: blue, w: green), 0 elsewhere."""
+    """Corner phantom: opacity 1 on three walls (d: white, h: green, w: blue), 0 elsewhere."""
     alpha = np.zeros((n, n, n))
     colors = np.zeros((n, n, n, 3))
-    for axis, rgb in ((0, (1.0, 1.0, 1.0)), (1, (0.0, 0.0, 1.0)), (2, (0.0, 1.0, 0.0))):
+    for axis, rgb in ((0, (1.0, 1.0, 1.0)), (1, (0.0, 1.0, 0.0)), (2, (0.0, 0.0, 1.0))):
         idx = [slice(None)] * 3
         idx[axis] = slice(0, thickness)
         alpha[tuple(idx)] = 1.0
@@ -205,9 +205,9 @@ def corner_results():
 
 def test_corner_green_bleeding(corner_results):
     _, rgb = corner_results
-    r, g, b = (float(c) for c in rgb[14, 14, 3])  # next to the green wall only
+    r, g, b = (float(c) for c in rgb[14, 3, 14])  # next to the green wall only
     assert g > r and g > b
-    r, g, b = (float(c) for c in rgb[14, 3, 14])  # next to the blue wall only
+    r, g, b = (float(c) for c in rgb[14, 14, 3])  # next to the blue wall only
     assert b > r and b > g
 
 

@@ -62,7 +62,9 @@ CORNER_VALUES: dict[str, float] = {"white": 1.0, "blue": 0.75, "green": 0.5}
 """Intensities of the three walls of the ``"corner"`` phantom, by the colour they are
 meant to be given (Ruiz et al. 2008, section 3.2, Figure 4: "left wall: green, right
 wall: blue, floor: white"): the floor (low ``d``) is ``"white"`` = 1.0, the wall at
-low ``h`` is ``"blue"`` = 0.75, the wall at low ``w`` is ``"green"`` = 0.5. Where two
+low ``h`` is ``"green"`` = 0.5, the wall at low ``w`` is ``"blue"`` = 0.75, so that a
+camera above the open corner (``volshade.Camera.orbit`` with an azimuth between 0 and
+90 degrees) sees green at its left and blue at its right, as in the figure. Where two
 walls meet the larger value wins; everything else is 0 (empty)."""
 
 SHELL_VALUES: tuple[float, float, float] = (0.3, 0.6, 1.0)
@@ -112,8 +114,8 @@ def _shells(shape: tuple[int, int, int], seed: int) -> np.ndarray:
 def _corner(shape: tuple[int, int, int], seed: int) -> np.ndarray:
     out = np.zeros(shape, dtype=np.float64)
     td, th, tw = (max(2, n // 16) for n in shape)
-    out[:, :, :tw] = CORNER_VALUES["green"]
-    out[:, :th, :] = np.maximum(out[:, :th, :], CORNER_VALUES["blue"])
+    out[:, :th, :] = CORNER_VALUES["green"]
+    out[:, :, :tw] = np.maximum(out[:, :, :tw], CORNER_VALUES["blue"])
     out[:td, :, :] = np.maximum(out[:td, :, :], CORNER_VALUES["white"])
     return out
 
@@ -255,8 +257,9 @@ def phantom(name: str, *, shape: int | tuple[int, int, int] = (64, 64, 64),
     * ``"corner"``: the colour-bleeding case of Ruiz et al. (2008, section 3.2,
       Figure 4, which uses $128^3$; pass ``shape=128`` for it): the three walls at
       the low-index faces, each ``max(2, n // 16)`` voxels thick, are opaque: the
-      floor (low ``d``) 1.0 ("white"), the wall at low ``h`` 0.75 ("blue"), the wall
-      at low ``w`` 0.5 ("green"), the maximum where walls meet, 0 elsewhere
+      floor (low ``d``) 1.0 ("white"), the wall at low ``h`` 0.5 ("green", at the
+      left as the camera of ``Camera.orbit`` sees the open corner, as in the figure),
+      the wall at low ``w`` 0.75 ("blue"), the maximum where walls meet, 0 elsewhere
       (:data:`CORNER_VALUES`).
     * ``"orange"``: a layered sphere after the orange of Ancel et al. (2010, Table 1):
       peel ($0.85 < r \le 0.95$, 1.0), pith under it ($0.78 < r \le 0.85$, 0.7) and
