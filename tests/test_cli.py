@@ -78,6 +78,10 @@ def test_cli_errors(tmp_path, capsys):
         (["render", str(bogus), "--out", str(tmp_path / "x.png")], "not an image nibabel"),
         (["render", "shells", "--out", str(tmp_path)], "--out must name a .png file"),
         (["render", "shells", "--out", str(tmp_path / "noext")], "--out must name a .png"),
+        (["render", "shells", "--out", str(tmp_path / "x.png"), "--background", "0", "2", "0"],
+         "--background must be three numbers in [0, 1] (R G B), got 0 2 0"),
+        (["render", "shells", "--out", str(tmp_path / "x.png"), "--background", "0", "0",
+          "-0.5"], "--background must be three numbers in [0, 1]"),
     ]:
         assert cli.main(argv) == 2
         err = capsys.readouterr().err

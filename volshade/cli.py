@@ -141,6 +141,10 @@ def render_command(args: argparse.Namespace) -> int:
     # found before the render, not after it
     if args.out.is_dir() or args.out.suffix.lower() != ".png":
         raise ValueError(f"--out must name a .png file, got {str(args.out)!r}.")
+    # a PNG would clip them silently (NaN is left to the scene's own check)
+    if any(c < 0 or c > 1 for c in args.background):
+        raise ValueError(f"--background must be three numbers in [0, 1] (R G B), got "
+                         f"{' '.join(f'{c:g}' for c in args.background)}.")
     vol, spacing = _load_volume(args.volume, args.downsample, args.size)
     tf = transfer.preset(args.preset or _PRESETS.get(args.volume, "grey"))
     classification = args.classification or ("pre" if args.volume in _LABELS else "post")
