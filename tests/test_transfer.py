@@ -160,6 +160,16 @@ def test_values_outside_the_control_points_are_refused():
     np.testing.assert_allclose(tf.opacity(jnp.asarray([0.0, 1.0])), [0.0, 0.5])  # ends inclusive
 
 
+def test_an_empty_array_is_classified_as_empty():
+    # an elementwise map: no value is outside the points (a minimum of nothing raised)
+    tf = _tf()
+    for empty in (jnp.zeros((0, 4, 4)), jnp.zeros((0,))):
+        assert tf.opacity(empty).shape == empty.shape
+        assert jax.jit(lambda v: tf.color(v))(empty).shape == (*empty.shape, 3)
+        assert tf.extinction(empty).shape == empty.shape
+        assert [x.shape for x in tf(empty)] == [(*empty.shape, 3), empty.shape]
+
+
 def test_a_negative_or_non_finite_step_is_refused():
     tf = _tf()
     x = jnp.asarray([0.25, 0.5])

@@ -110,7 +110,8 @@ class TransferFunction(eqx.Module):
                                 where)
         # in the volume's dtype, as _interp classifies: float32(0.3) > 0.3 in float64
         points = tf.points.astype(volume.dtype)
-        outside = (jnp.min(volume) < points[0]) | (jnp.max(volume) > points[-1])
+        # (an elementwise test: an empty volume has no value outside, and is classified)
+        outside = jnp.any((volume < points[0]) | (volume > points[-1]))
         # interpolation would classify all those values like the end points (a 0-255
         # volume through a [0, 1] transfer function renders as one solid blob)
         return tf, _checks.refuse(volume, [(
