@@ -303,7 +303,7 @@ def phantom(name: str, *, shape: int | tuple[int, int, int] = (64, 64, 64),
     Example:
         >>> vol = phantom("corner", shape=32)
         >>> float(vol[0, 16, 16]), float(vol[16, 0, 16]), float(vol[16, 16, 0])
-        (1.0, 0.75, 0.5)
+        (1.0, 0.5, 0.75)
     """
     where = "volshade.data.phantom"
     builder = _checks.option(name, _PHANTOMS, "phantom name", where)
