@@ -5,11 +5,16 @@
 The cheap subset of ``benchmarks.gpu`` for when device time is short.
 """
 
+import jax
+
 from .gpu import _agreement
 from .lao import run_gpu
 
 
 def run(quick: bool) -> dict:
+    if jax.default_backend() != "gpu":
+        raise SystemExit("benchmarks.run gpu_recheck needs a GPU (jax.default_backend() is "
+                         f"{jax.default_backend()!r}).")
     rows = _agreement()
     lao = run_gpu(n=256 if quick else 512)
     return {"title": "GPU re-check: agreement and LAO", "sizes": {"quick": quick},

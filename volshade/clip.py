@@ -4,8 +4,10 @@ A clip is a solid placed in the volume (voxel index coordinates, ``(d, h, w)``
 order) by its ``center`` and ``rotation`` (a rotation matrix whose columns are
 the shape's local axes); the voxels whose centres lie inside it are removed
 (opacity 0). This is the subtraction of the clipping mesh from the volume of
-Titov et al. (section 3.2). Every shape has an exact signed distance
-$\phi(x)$ (voxels, negative inside, 1-Lipschitz), from which both masks follow:
+Titov et al. (section 3.2). Every shape has a signed distance $\phi(x)$ (voxels,
+negative inside, 1-Lipschitz; exact, but inside a self-intersecting torus, ``major <
+minor``, where $|\phi|$ may be less than the distance to the surface), from which both
+masks follow:
 
 * **clipped**: $\phi(x) \le 0$ at the voxel centre;
 * **affected** (the dilation shape, sections 3.3-3.4): the LAO of voxel $x$ reads
@@ -19,7 +21,7 @@ $\phi(x)$ (voxels, negative inside, 1-Lipschitz), from which both masks follow:
 The paper computes the dilation as the Minkowski sum of the clipping mesh and a
 sphere of radius $R$, in 2D on depth maps rendered from a clipping camera (a
 rasterisation device, which limits it to meshes of at most two depth layers);
-with an exact signed distance it is a threshold, for any shape, convex or not.
+with a 1-Lipschitz signed distance it is a threshold, for any shape, convex or not.
 
 The pose and sizes are array leaves: moving a clip does not recompile. They are
 checked when the shape is built from known values and, when traced, wherever the

@@ -635,7 +635,7 @@ def composite(
 
     Raises:
         ValueError: mismatched shapes, ``background_importance`` without
-            ``importance``; NaN/inf in the inputs or alphas outside [0, 1] (traced:
+            ``importance``, ``unroll < 1``; NaN/inf in the inputs or alphas outside [0, 1] (traced:
             ``equinox.EquinoxRuntimeError`` at run time).
         TypeError: non-numeric inputs.
 

@@ -266,7 +266,7 @@ def phantom(name: str, *, shape: int | tuple[int, int, int] = (64, 64, 64),
       flesh ($r \le 0.78$, 0.4) cut into 10 wedge-shaped segments around the ``d``
       axis (segment 0 centred on the ``+w`` axis) by membranes of pith (0.7), at least
       1.5 voxels thick so that they always separate the segments, around a central
-      column of pith of radius ``max(0.08, 2 voxels)`` (:data:`ORANGE_VALUES`).
+      column of pith of radius ``max(0.08, 1 voxel)`` (:data:`ORANGE_VALUES`).
     * ``"bucky"``: a buckyball: 60 balls on the vertices of a truncated icosahedron
       (the C60 fullerene layout; circumsphere radius 0.72, ball radius
       ``max(0.1, 1.5 voxels)``) with the 90 bonds between neighbours as thinner rods

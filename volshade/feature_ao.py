@@ -186,6 +186,7 @@ def merge_feature_ao(
     Raises:
         ValueError: ``ao`` or ``opacities`` not 4-D or empty (no feature), shapes that
             differ, an unknown ``merge``.
+        TypeError: ``ao`` or ``opacities`` not arrays of real numbers.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
             NaN, inf or values outside ``[0, 1]``.
 
@@ -265,7 +266,8 @@ def feature_ao(
 
     Raises:
         ValueError: no features, an interval feature without ``base``, a bad ``step``,
-            an unknown ``merge``, and every error of :func:`~volshade.lao.lao`.
+            an unknown ``merge``, a volume outside a transfer function's control points
+            (``base``'s or a feature's), and every error of :func:`~volshade.lao.lao`.
         TypeError: ``features`` not a list of features, a ``base`` that is not a
             transfer function.
 

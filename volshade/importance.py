@@ -360,7 +360,13 @@ def sample_importance(
         factor in (0, 1] to multiply the sample colour by.
 
     Raises:
-        ValueError: no features given, or shapes that do not broadcast.
+        ValueError: no features given, shapes that do not broadcast, vectors whose last
+            axis is not 3.
+        TypeError: non-numeric features.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in a
+            feature or a weight, a negative ``extinction`` or ``optical_depth``, a
+            ``gradient_magnitude`` outside ``[0, 1]``, ``params`` out of their domain
+            (see :class:`Importance`).
 
     Example:
         >>> imp, scale = sample_importance(Importance(intensity=5.0), intensity=jnp.ones(8))
@@ -526,7 +532,11 @@ def focus_weights(
         ``(H, W)`` weights between ``outside`` and ``inside``.
 
     Raises:
-        ValueError: unknown ``kind``, bad ``image_shape`` or ``center`` shape.
+        ValueError: unknown ``kind``, bad ``image_shape`` or ``center`` shape, a
+            non-scalar ``radius``, ``inside`` or ``outside``.
+        TypeError: ``image_shape`` not ints, non-numeric inputs.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in
+            ``center``, ``inside`` or ``outside``; ``radius`` not a finite number > 0.
 
     Example:
         >>> w = focus_weights((64, 64), center=(32.0, 20.0), radius=10.0, kind="circular")

@@ -60,7 +60,7 @@ available through the custom VJP (optimistix least-squares solvers then need
 **On a GPU** ``implementation="pallas"`` runs the same march, values and
 gradients, as Pallas (Triton) kernels in which one program marches all rays of a
 tile of voxels in registers (``volshade._lao_pallas``); it is opt-in until it has
-been timed on a GPU (``python -m benchmarks.run gpu``).
+been timed on a GPU (``python -m benchmarks.run lao_pallas``).
 
 **Bricks** (``brick_size``): bricks with no opacity within reach get AO = 1 and
 are not marched; the active ones are compacted and marched in groups, ``vmap``-ped

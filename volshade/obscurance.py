@@ -754,6 +754,7 @@ def obscurance_shading(
     Raises:
         ValueError: vectors whose last axis is not 3 or that do not broadcast against
             ``normal``; non-scalar coefficients; a concrete ``shininess <= 0``.
+        TypeError: ``two_sided`` not True or False, non-numeric inputs.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
             NaN or inf in ``normal``, ``light``, ``view``, ``obscurance`` or the
             coefficients; a traced ``shininess <= 0``.
@@ -878,7 +879,8 @@ class ObscuranceParams(eqx.Module):
         rho: name of a rho function (:data:`RHO_FUNCTIONS`) or a callable
             ``rho(d, d_max)``, as for :func:`obscurance` (static: a new function
             compiles again).
-        level: icosphere level of the directions: 0, 1, 2 for 12, 42, 162.
+        level: icosphere level of the directions, 0 to 4: 0, 1, 2 for the paper's 12,
+            42, 162 (3 and 4 give 642 and 2562).
         color_bleeding: tint by the occluders' transfer-function colours (eq. 3): a
             voxel's own colour or, with ``smoothing``, the opacity-weighted mean colour
             of the neighbourhood its smoothed density comes from,
