@@ -11,6 +11,9 @@ from helpers import check_grad_fd
 
 import volshade as vs
 from volshade.directions import icosphere, icosphere_points
+from volshade.gradient import gradient_magnitude, regression_gradient
+from volshade.saliency import opacity_factor
+from volshade.sampling import trilinear
 
 RNG = np.random.default_rng(42)
 SHAPE = (8, 9, 7)
@@ -29,6 +32,27 @@ def _smooth(seed):
     """A smooth field (no ties, no flat regions) on SHAPE."""
     g = np.stack(np.meshgrid(*[np.linspace(0, 1, s) for s in SHAPE], indexing="ij"))
     return jnp.asarray(0.5 + 0.3 * np.sin(3 * g[0] + seed) * np.cos(2 * g[1] - g[2] * seed))
+
+
+CLIP = vs.SphereClip(center=(4.0, 4.0, 3.0), radius=2.5)
+LAO = dict(directions=VIEWS, radius=3.3, offset=0.7, samples=4)
+# opacity linear in the intensity: no kink for a finite difference to straddle
+RAMP_FEATURE = vs.TransferFunction.from_points([(0.0, 1, 1, 1, 0.05), (1.0, 1, 1, 1, 0.6)])
+FALL_FEATURE = vs.TransferFunction.from_points([(0.0, 1, 1, 1, 0.5), (1.0, 1, 1, 1, 0.1)])
+# (d, h, w) at least 0.2 voxels from the voxel centres, where trilinear interpolation has
+# kinks; some lie in the half voxel outside the volume, interpolating towards the zeros
+POINTS = jnp.asarray(RNG.integers(-1, SHAPE, (2, 20, 3)) + RNG.uniform(0.2, 0.8, (2, 20, 3)))
+GRADIENTS = (jnp.stack([_smooth(1), _smooth(2), _smooth(3)], -1),
+             jnp.stack([_smooth(4), _smooth(5), _smooth(6)], -1))
+CAMERA = vs.Camera.orbit(azimuth=25.0, elevation=10.0, image_shape=(6, 6))
+
+
+def _render(volume, shininess=8.0):
+    """A small Phong-shaded render with LAO (a few short rays) as its ambient term."""
+    lao = vs.LocalAmbientOcclusion(2.7, offset=0.6, directions=6, samples=3, max_radius=4.0)
+    scene = vs.Scene(volume=volume, transfer=TF, step=0.5, shading="phong", ambient="lao",
+                     lao=lao, phong=vs.Phong(shininess=shininess))
+    return vs.render(scene, CAMERA)
 
 
 # name: (function of one array, two inputs for vmap, differentiable)
@@ -85,6 +109,51 @@ CASES = {
         True),
     "IntervalFeature": (lambda v: vs.IntervalFeature(0.2, 0.7).opacity(v, TF),
                         (VOLUME, _smooth(1)), False),
+    # the base's opacities inside (0, 1): a finite difference must not step out of range
+    "IntervalFeature(base opacities)": (
+        lambda o: vs.IntervalFeature(0.2, 0.6).opacity(
+            VOLUME, vs.TransferFunction(TF.points, TF.colors, o), step=0.5),
+        (jnp.asarray([0.05, 0.1, 0.3]), jnp.asarray([0.2, 0.1, 0.6])), True),
+    "lao(weights)": (
+        lambda w: vs.lao(ALPHA, weights=w, **LAO),
+        (jnp.linspace(0.5, 1.5, 12), jnp.linspace(1.5, 0.5, 12) ** 2), True),
+    "FeatureAmbientOcclusion(radius)": (
+        lambda r: vs.FeatureAmbientOcclusion(
+            [vs.IntervalFeature(0.2, 0.5), vs.IntervalFeature(0.5, 1.0)],
+            lao=vs.LocalAmbientOcclusion(r, offset=0.7, directions=6, samples=4, max_radius=5.0),
+            merge="neighbourhood")(VOLUME, base=TF),
+        (jnp.asarray(3.3), jnp.asarray(4.1)), True),
+    "feature_ao(volume)": (
+        lambda v: vs.feature_ao(v, features=[RAMP_FEATURE, FALL_FEATURE], directions=6,
+                                radius=3.3, offset=0.7, samples=4, merge="max"),
+        (_smooth(1), _smooth(2)), True),
+    # VOLUME keeps > 1e-4 from the intervals' ends and the base's kink at 0.1, far beyond
+    # the finite differences' step
+    "feature_opacities(volume)": (
+        lambda v: vs.transfer.feature_opacities(v, [vs.IntervalFeature(0.2, 0.6), RAMP_FEATURE],
+                                                base=TF, step=0.5),
+        (VOLUME, _smooth(1)), True),
+    "TransferFunction.opacity": (lambda v: TF.opacity(v, step=0.5), (VOLUME, _smooth(1)), True),
+    # lambdas, not bound methods: jax.jit would hash the method's Module, arrays and all
+    "TransferFunction.color": (lambda v: TF.color(v), (VOLUME, _smooth(1)), True),
+    "TransferFunction.extinction": (lambda v: TF.extinction(v), (VOLUME, _smooth(1)), True),
+    "clip_opacity": (lambda a: vs.clip_opacity(a, CLIP), (ALPHA, ALPHA ** 2), True),
+    "affected_mask(radius)": (lambda r: vs.affected_mask(SHAPE, CLIP, radius=r),
+                              (jnp.asarray(1.0), jnp.asarray(3.0)), False),
+    # VOLUME keeps > 1e-4 from the threshold and from the edge of the boosted top (0.8)
+    "opacity_factor": (lambda s: opacity_factor(s, threshold=0.3, boost_top=0.2),
+                       (VOLUME, _smooth(1)), True),
+    "gradient_magnitude": (gradient_magnitude, GRADIENTS, True),
+    "regression_gradient(size=3)": (
+        lambda v: regression_gradient(v, size=3, spacing=(1.0, 2.0, 0.5)), (VOLUME, _smooth(1)),
+        True),
+    "regression_gradient(size=5)": (
+        lambda v: regression_gradient(v, size=5, spacing=(1.0, 2.0, 0.5)), (VOLUME, _smooth(1)),
+        True),
+    "trilinear(points)": (lambda p: trilinear(VOLUME, p), (POINTS[0], POINTS[1]), True),
+    "render(volume)": (_render, (_smooth(1), _smooth(2)), True),
+    "render(Phong.shininess)": (lambda n: _render(_smooth(1), n),
+                                (jnp.asarray(8.0), jnp.asarray(12.0)), True),
 }
 
 
@@ -106,6 +175,23 @@ def test_grad_matches_finite_differences(name):
     weights = jnp.asarray(np.random.default_rng(7).normal(size=jax.eval_shape(fn, x1).shape))
     g = check_grad_fd(jax.jit(lambda x: jnp.sum(weights * fn(x))), x1, rtol=1e-4)
     assert np.all(np.isfinite(np.asarray(g))) and float(jnp.max(jnp.abs(g))) > 0
+
+
+# kernels whose own tests check only the dtype of a float32 run
+LOW_PRECISION = {
+    "contextual_ao": (
+        lambda a: vs.contextual_ao(a, clip=CLIP, unclipped=vs.lao(a, **LAO), brick_size=4, **LAO),
+        ALPHA),
+    "trilinear": (lambda v: trilinear(v, POINTS[0].astype(v.dtype)), VOLUME),
+}
+
+
+@pytest.mark.parametrize("name", sorted(LOW_PRECISION))
+def test_float32_agrees_with_float64(name):
+    fn, x = LOW_PRECISION[name]
+    low = fn(x.astype(jnp.float32))
+    assert low.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(low, np.float64), np.asarray(fn(x)), rtol=0, atol=2e-6)
 
 
 def _threshold(o, low, high):
