@@ -82,6 +82,16 @@ class Camera(eqx.Module):
             follows from the aspect ratio.
         image_shape: ``(H, W)`` pixels, or one int for a square image (static).
         projection: ``"perspective"`` or ``"orthographic"`` (static).
+
+    Raises:
+        ValueError: ``eye``, ``target`` or ``up`` not of shape ``(3,)``; ``image_shape``
+            not ``(H, W)`` or with a size < 1; an unknown ``projection``.
+        TypeError: non-numeric (or bool) ``eye``, ``target``, ``up``, ``fov`` or
+            ``width``; ``image_shape`` not ints.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``fov``
+            outside (0, 180) (perspective) or ``width <= 0`` (orthographic), checked
+            when its rays are made (:meth:`rays`, a render); NaN or inf, refused by
+            :func:`~volshade.render`.
     """
 
     eye: Float[Array, "3"] = eqx.field(converter=_checks.leaf("volshade.Camera", "eye"))
@@ -159,6 +169,16 @@ class Camera(eqx.Module):
             fov: vertical field of view in degrees (perspective).
             width: view height in scene units (orthographic).
             target: ``(3,)`` point looked at.
+
+        Raises:
+            ValueError: ``target`` not of shape ``(3,)``; a non-scalar ``azimuth``,
+                ``elevation`` or ``distance``; the errors of :class:`Camera` for
+                ``image_shape`` and ``projection``.
+            TypeError: non-numeric (or bool) arguments; ``image_shape`` not ints.
+            ValueError / equinox.EquinoxRuntimeError (traced: at run time):
+                ``distance <= 0``; ``fov`` outside (0, 180) (perspective) or
+                ``width <= 0`` (orthographic), traced: when the rays are made; NaN or
+                inf in an argument, traced: refused by the render.
 
         Example:
             >>> cam = Camera.orbit(azimuth=30, elevation=20, image_shape=(64, 64))

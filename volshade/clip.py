@@ -132,6 +132,12 @@ class Clip(eqx.Module):
 class SphereClip(Clip):
     """A ball of ``radius`` voxels around ``center``.
 
+    Args:
+        center: ``(3,)`` centre ``(d, h, w)`` in voxel index coordinates.
+        radius: radius in voxels (> 0).
+        rotation: optional ``(3, 3)`` orthonormal matrix, columns the local axes
+            (default the identity; a ball is the same in any).
+
     Example:
         >>> clip = SphereClip(center=(8.0, 8.0, 8.0), radius=3.0)
         >>> float(clip.signed_distance(jnp.asarray([8.0, 8.0, 13.0])))
@@ -152,7 +158,15 @@ class SphereClip(Clip):
 
 
 class BoxClip(Clip):
-    """A box of half-sizes ``half_size`` ``(3,)`` voxels along its local axes."""
+    """A box of half-sizes ``half_size`` ``(3,)`` voxels along its local axes.
+
+    Args:
+        center: ``(3,)`` centre ``(d, h, w)`` in voxel index coordinates.
+        half_size: half the box's edge along each local axis in voxels (> 0): one
+            number (a cube) or three.
+        rotation: optional ``(3, 3)`` orthonormal matrix whose columns are the box's
+            local axes (default the identity: edges along ``d``, ``h``, ``w``).
+    """
 
     half_size: Float[Array, "3"]
     sizes = ("half_size",)
@@ -178,7 +192,15 @@ class TorusClip(Clip):
     """A torus around the local first axis: its tube (radius ``minor``) circles at
     ``major`` voxels from ``center`` in the plane of the other two axes (the concave
     clip of Titov et al., Figure 1). Its signed distance is 1-Lipschitz for any sizes
-    and exact when ``major >= minor``."""
+    and exact when ``major >= minor``.
+
+    Args:
+        center: ``(3,)`` centre ``(d, h, w)`` in voxel index coordinates.
+        major: distance in voxels from ``center`` to the centre line of the tube (> 0).
+        minor: radius of the tube in voxels (> 0).
+        rotation: optional ``(3, 3)`` orthonormal matrix whose columns are the local
+            axes, the first the torus's axis (default the identity: around ``d``).
+    """
 
     major: Float[Array, ""]
     minor: Float[Array, ""]
@@ -197,7 +219,14 @@ class TorusClip(Clip):
 
 class HalfSpaceClip(Clip):
     """Everything on the side of the plane through ``center`` that the local first axis
-    (``rotation[:, 0]``, by default ``+d``) points to: a cut-away."""
+    (``rotation[:, 0]``, by default ``+d``) points to: a cut-away.
+
+    Args:
+        center: ``(3,)`` a point ``(d, h, w)`` of the plane, in voxel index
+            coordinates.
+        rotation: optional ``(3, 3)`` orthonormal matrix whose first column is the
+            plane's normal, pointing into the removed side (default the identity).
+    """
 
     def __init__(self, *, center: ArrayLike, rotation: ArrayLike | None = None):
         self.center, self.rotation = _pose(center, rotation, "volshade.HalfSpaceClip")
@@ -276,6 +305,14 @@ def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
     Returns:
         ``(D, H, W)`` boolean, True where removed.
 
+    Raises:
+        ValueError: ``shape`` not 3 positive ints.
+        TypeError: ``clip`` not a clip shape.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): a ``clip`` leaf
+            that is not finite, a size that is not > 0 or a ``rotation`` that is not
+            orthonormal (values set after it was built, e.g. with ``eqx.tree_at``, or
+            traced).
+
     Example:
         >>> int(clip_mask((9, 9, 9), SphereClip(center=(4.0, 4.0, 4.0), radius=1.0)).sum())
         7
@@ -297,6 +334,12 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
 
     Returns:
         ``(D, H, W)`` boolean.
+
+    Raises:
+        ValueError: ``shape`` not 3 positive ints, a non-scalar ``radius``.
+        TypeError: ``clip`` not a clip shape, a non-numeric (or bool) ``radius``.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``radius`` not
+            a finite number > 0; a bad ``clip`` leaf (as for :func:`clip_mask`).
     """
     where = "volshade.affected_mask"
     clip = _clip(clip, where)

@@ -80,6 +80,14 @@ class Importance(eqx.Module):
         specular_exponent, diffuse_exponent, gradient_exponent: $p_1$, $p_2$, $p_3$
             of eq. 10 (50, 5, 30).
 
+    Raises:
+        ValueError: a non-scalar field.
+        TypeError: a non-numeric (or bool) field.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in
+            a field (``background`` may be -inf), an exponent <= 0, ``darkening < 0``,
+            ``silhouette_start >= silhouette_end``; traced values are checked where
+            the weights are used (:func:`sample_importance`, a render).
+
     Example:
         >>> imp = Importance(intensity=4.0, silhouette=2.0)
     """
@@ -592,6 +600,15 @@ class Focus(eqx.Module):
         radius: radius as a fraction of the image height.
         kind: ``"circular"``, ``"gaussian"`` or ``"screen_door"`` (static).
         inside, outside: global weights at the focus centre and far from it.
+
+    Raises:
+        ValueError: an unknown ``kind``; ``center`` not of shape ``(2,)``; when known,
+            ``radius`` not > 0 (or NaN) or ``center`` outside [0, 1]; from
+            :meth:`weights`, a non-scalar ``radius``, ``inside`` or ``outside``.
+        TypeError: a non-numeric (or bool) field.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): from
+            :meth:`weights` (and so a render), ``radius`` not a finite number > 0, NaN
+            or inf in ``center``, ``inside`` or ``outside``.
     """
 
     center: Float[Array, "2"] = eqx.field(

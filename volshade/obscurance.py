@@ -900,6 +900,15 @@ class ObscuranceParams(eqx.Module):
             voxels and draws the voxel grid on smooth surfaces as striations; a
             sigma of about 1 voxel removes them. The search is not differentiated,
             so this changes only which voxels occlude.
+
+    Raises:
+        ValueError: an unknown ``rho`` or ``density``; ``level`` outside 0-4;
+            ``smoothing`` not a finite number >= 0 (a string or a bool included).
+        TypeError: non-numeric (or bool) ``d_max``, ``low`` or ``high``; ``level`` not
+            an int; ``color_bleeding`` not a bool.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``d_max`` not
+            a finite number > 0, NaN or inf in ``low`` or ``high``, ``low > high``;
+            traced values are checked when a render computes the obscurance.
     """
 
     d_max: Float[Array, ""] = eqx.field(

@@ -332,6 +332,15 @@ def projected_area(
     Returns:
         ``(V,)`` areas in voxel$^2$, in the dtype of ``opacity``.
 
+    Raises:
+        ValueError: ``opacity`` not 3-D or empty; a non-scalar ``level``;
+            ``viewpoints`` not of shape ``(V, 3)`` with ``V >= 1``, or holding NaN, inf
+            or a zero vector.
+        TypeError: non-numeric inputs (or a bool ``level``); ``viewpoints`` traced
+            (they must be concrete), a number or complex.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in
+            ``opacity`` or ``level``, ``opacity`` outside [0, 1].
+
     Example:
         >>> alpha = jnp.zeros((8, 8, 8)).at[2:4, 2:6, 2:6].set(1.0)
         >>> [float(a) for a in projected_area(alpha, jnp.array([[1.0, 0, 0], [0, 1.0, 0]]))]
@@ -370,6 +379,15 @@ def most_salient_view(
     :func:`viewpoint_saliency`; ties go to the first viewpoint. The direction is in
     voxel index space: ``Camera.from_view(view, spacing=...)`` looks along it.
 
+    Raises:
+        ValueError: ``saliency`` or ``opacity`` not 3-D or empty, or of different
+            shapes; ``viewpoints`` not of shape ``(V, 3)`` with ``V >= 1``, or holding
+            NaN, inf or a zero vector; an unknown ``visibility``.
+        TypeError: non-numeric inputs; ``viewpoints`` traced (they must be concrete),
+            a number or complex; ``per_area`` not a bool.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in
+            ``saliency`` or ``opacity``, ``opacity`` outside [0, 1].
+
     Example:
         >>> sal = jnp.zeros((8, 8, 8)).at[1, 4, 4].set(1.0)
         >>> alpha = jnp.zeros((8, 8, 8)).at[4:].set(1.0)
@@ -389,7 +407,17 @@ def least_salient_view(
     visibility: str = "transmittance",
 ) -> Float[Array, "3"]:
     """The viewpoint of smallest :func:`viewpoint_saliency` (Figure 6 d); see
-    :func:`most_salient_view`."""
+    :func:`most_salient_view`.
+
+    Raises:
+        ValueError: ``saliency`` or ``opacity`` not 3-D or empty, or of different
+            shapes; ``viewpoints`` not of shape ``(V, 3)`` with ``V >= 1``, or holding
+            NaN, inf or a zero vector; an unknown ``visibility``.
+        TypeError: non-numeric inputs; ``viewpoints`` traced (they must be concrete),
+            a number or complex; ``per_area`` not a bool.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in
+            ``saliency`` or ``opacity``, ``opacity`` outside [0, 1].
+    """
     return _select(saliency, opacity, viewpoints, per_area, visibility, jnp.argmin,
                    "volshade.saliency.least_salient_view")
 

@@ -148,6 +148,10 @@ class Scene(eqx.Module):
     in, and refuses parameters that were given or changed unless they are dropped too
     (``lao=None``).
 
+    The constructor checks types, shapes, options and which effects use what (see
+    Raises); values (NaN or inf in ``volume`` or a parameter, out-of-range values)
+    are checked by :func:`render`, at run time when they are traced.
+
     Attributes:
         volume: ``(D, H, W)`` intensities.
         transfer: the transfer function.
@@ -201,6 +205,23 @@ class Scene(eqx.Module):
             ``"pre"`` (interpolate the classified voxels' opacity-weighted colours:
             for label volumes, such as the ``"corner"`` phantom; see
             :func:`~volshade.render.march`) (static).
+
+    Raises:
+        ValueError: ``volume`` not 3-D or empty; ``step`` not a finite number > 0;
+            ``spacing`` not 1 or 3 finite numbers > 0; an unknown ``ambient``,
+            ``modulation``, ``shading``, ``composition`` or ``classification``;
+            ``ambient="volume"`` without ``ambient_volume``, or ``ambient_volume`` with
+            another ``ambient`` or a shape other than ``(D, H, W)`` or ``(D, H, W, 3)``;
+            ``ambient="feature_ao"`` without ``feature_ao``; effect parameters given to a
+            scene that does not use them; ``focus`` without ``composition="importance"``;
+            ``importance.global_weight`` (with ``focus``) or ``phong.ambient`` (with
+            ``shading="obscurance"``) set to other than its default; ``clip`` with
+            ``ambient="feature_ao"`` or ``"obscurance"`` or ``modulation="saliency"``;
+            ``background`` not of shape ``(3,)``.
+        TypeError: non-numeric ``volume`` or ``background`` (a bool ``background``);
+            ``step`` or ``spacing`` not numbers, or traced (they are static);
+            ``transfer``, ``lao``, ``feature_ao``, ``obscurance``, ``saliency``,
+            ``phong``, ``importance``, ``focus`` or ``clip`` not of its volshade type.
 
     Example:
         >>> vol = jnp.zeros((8, 8, 8))

@@ -38,6 +38,12 @@ class Phong(eqx.Module):
         diffuse: $k_d$.
         specular: $k_s$ (white highlights).
         shininess: Phong exponent $n$.
+
+    Raises:
+        TypeError: a non-numeric (or bool) coefficient.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): a coefficient
+            that is not a finite number >= 0, or ``shininess <= 0``; traced values are
+            checked when a render uses them.
     """
 
     ambient: Float[Array, ""] = eqx.field(

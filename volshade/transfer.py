@@ -57,6 +57,16 @@ class TransferFunction(eqx.Module):
         opacities: ``(K,)`` opacities in [0, 1] for a segment of length ``step0``.
         step0: reference segment length in mm for ``opacities`` (static).
 
+    Raises:
+        ValueError: ``points`` not a non-empty 1-D array; ``colors`` not ``(K, 3)`` or
+            ``opacities`` not ``(K,)``; ``step0`` not a finite number > 0.
+        TypeError: non-numeric (or bool) ``points``, ``colors`` or ``opacities``;
+            ``step0`` not a number.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``points`` not
+            finite and strictly increasing, ``colors`` or ``opacities`` outside [0, 1]
+            (or NaN); traced values are checked where the function is used
+            (:meth:`opacity`, :meth:`color`, a render).
+
     Example:
         >>> tf = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (1.0, 1, 1, 1, 0.5)])
         >>> float(tf.opacity(jnp.array(0.5)))
@@ -200,6 +210,17 @@ class IntervalFeature(eqx.Module):
     """A feature given by an intensity interval ``[low, high]`` of a base transfer function.
 
     Its opacity is the base opacity where ``low <= value <= high`` and 0 elsewhere.
+
+    Args:
+        low, high: the interval's ends, in the intensity units of the base transfer
+            function's ``points``, ``low < high`` (array leaves; the selection is a
+            step in them, so they get no gradient).
+
+    Raises:
+        TypeError: a non-numeric (or bool) ``low`` or ``high``.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``low >= high``
+            or a NaN end; traced values are checked where the feature is used
+            (:meth:`opacity`, :func:`feature_opacities`).
     """
 
     low: Float[Array, ""]
