@@ -192,6 +192,14 @@ def test_modules_built_with_a_batch_axis_vmap():
         vs.ObscuranceParams(low=[0.0, 0.9], high=[1.0, 0.5])
 
 
+def test_a_traced_focus_centre_outside_the_image_is_refused_where_it_is_used():
+    # Focus checks a known centre when built; a traced one, where its weights are made
+    weights = jax.jit(lambda c: vs.Focus(center=c).weights((8, 8)))
+    assert weights(jnp.asarray([0.5, 0.25])).shape == (8, 8)
+    with pytest.raises(Exception, match=r"`center` must be \(row, column\) fractions"):
+        jax.block_until_ready(weights(jnp.asarray([32.0, 32.0])))
+
+
 def test_parameter_modules_accept_traced_values():
     # constructed under jit the values are unknown: nothing is refused at construction
     out = jax.jit(lambda d, t: (vs.ObscuranceParams(d_max=d).d_max,

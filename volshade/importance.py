@@ -622,17 +622,21 @@ class Focus(eqx.Module):
         converter=_checks.leaf("volshade.Focus", "outside"), default=0.0)
 
     def __check_init__(self):
-        _checks.option(self.kind, FOCUS_KINDS, "focus kind", "volshade.Focus")
+        _checks.option(self.kind, FOCUS_KINDS, "kind", "volshade.Focus")
         if jnp.shape(self.center) != (2,):
             raise ValueError(f"volshade.Focus: `center` must be (row, column) fractions, "
                              f"got shape {jnp.shape(self.center)}.")
         _checks.refuse(self, [(~(self.radius > 0), "`radius` must be > 0 (a fraction of the "
                                                    "image height)."),
-                              # pixel coordinates would put the focus far off the image
-                              (jnp.any((self.center < 0) | (self.center > 1)),
-                               "`center` must be (row, column) fractions of the image in "
-                               "[0, 1]; for a centre in pixels use volshade.focus_weights.")],
-                       "volshade.Focus", traced=False)  # traced: by focus_weights, in pixels
+                              self._center_problem()],
+                       "volshade.Focus", traced=False)  # traced: by weights()
+
+    def _center_problem(self) -> tuple[Array, str]:
+        """``center`` outside ``[0, 1]``, for :func:`volshade._checks.refuse`: pixel
+        coordinates would put the focus far off the image."""
+        return (jnp.any((self.center < 0) | (self.center > 1)),
+                "`center` must be (row, column) fractions of the image in [0, 1]; for a "
+                "centre in pixels use volshade.focus_weights.")
 
     def _without_gradient(self) -> dict[str, str]:
         """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
@@ -650,6 +654,7 @@ class Focus(eqx.Module):
                                  f"each Focus inside jax.vmap, e.g. jax.vmap(lambda r: "
                                  f"Focus(radius=r).weights(shape))(radii).")
         h, w = image_shape
-        center = self.center * jnp.asarray([h, w], self.center.dtype) - 0.5
+        center = _checks.refuse(self.center, [self._center_problem()], "volshade.Focus")
+        center = center * jnp.asarray([h, w], self.center.dtype) - 0.5
         return focus_weights(image_shape, center=center, radius=self.radius * h, kind=self.kind,
                              inside=self.inside, outside=self.outside)
