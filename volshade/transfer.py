@@ -214,7 +214,8 @@ class IntervalFeature(eqx.Module):
     Args:
         low, high: the interval's ends, in the intensity units of the base transfer
             function's ``points``, ``low < high`` (array leaves; the selection is a
-            step in them, so they get no gradient).
+            step in them, so they get no gradient). An infinite end leaves that side
+            open (``IntervalFeature(0.5, inf)``: every value from 0.5 on).
 
     Raises:
         TypeError: a non-numeric (or bool) ``low`` or ``high``.
@@ -235,7 +236,7 @@ class IntervalFeature(eqx.Module):
         known_low, known_high = _checks.concrete(low), _checks.concrete(high)
         if known_low is not None and known_high is not None and \
                 not np.all(known_low < known_high):
-            raise ValueError(f"{where}: need low < high (finite), got {low}, {high}.")
+            raise ValueError(f"{where}: need `low` < `high` (not NaN), got {low}, {high}.")
 
     def _without_gradient(self) -> dict[str, str]:
         """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
@@ -254,7 +255,7 @@ class IntervalFeature(eqx.Module):
         low, high = self.low.astype(volume.dtype), self.high.astype(volume.dtype)
         selected = jnp.where((volume >= low) & (volume <= high), base_opacity, 0)
         return _checks.refuse(selected, [(~jnp.all(self.low < self.high),
-                                          "need low < high (finite).")],
+                                          "need `low` < `high` (not NaN).")],
                               "volshade.IntervalFeature")
 
 
