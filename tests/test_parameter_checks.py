@@ -165,6 +165,21 @@ def test_nested_lists_become_arrays():
      "BoxClip: `half_size` must be a real number"),
     (lambda: vs.BoxClip(center=(6.0, 6.0, 6.0), half_size=(1.0, 2.0)), ValueError,
      r"`half_size` must be one number or three .* got shape \(2,\)"),
+    # a batch of sizes or of camera settings would fail later, in a broadcast naming nothing
+    (lambda: vs.SphereClip(center=(6.0, 6.0, 6.0), radius=[1.0, 2.0]), ValueError,
+     r"SphereClip: `radius` must have shape \(\) .* inside jax.vmap"),
+    (lambda: vs.TorusClip(center=(6.0, 6.0, 6.0), major=3.0, minor=[1.0, 2.0]), ValueError,
+     r"TorusClip: `minor` must have shape \(\)"),
+    (lambda: vs.clip_mask(8, vs.SphereClip(center=(4.0, 4.0, 4.0), radius=1.0)), TypeError,
+     r"clip_mask: `shape` must be a tuple of 3 positive ints"),
+    (lambda: vs.Camera.orbit(fov=[30.0, 40.0]), ValueError,
+     "Camera.orbit: `fov` must be a scalar, .* list of cameras"),
+    (lambda: vs.Camera(eye=(0.0, 0.0, 2.0), target=(0.0, 0.0, 0.0), up=(1.0, 0.0, 0.0),
+                       fov=30.0, width=[1.0, 2.0]), ValueError,
+     r"volshade.Camera: `width` must have shape \(\)"),
+    (lambda: vs.render(vs.Scene(volume=VOL, transfer=TF, shading="phong",
+                                phong=vs.Phong(ambient=[0.2, 0.4])), CAM), ValueError,
+     "Phong: `ambient` must be a scalar to shade, got shape \\(2,\\); .* jax.vmap"),
 ])
 def test_parameter_modules_refuse_bad_values_at_construction(build, exc, match):
     with pytest.raises(exc, match=match):

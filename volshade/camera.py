@@ -84,8 +84,9 @@ class Camera(eqx.Module):
         projection: ``"perspective"`` or ``"orthographic"`` (static).
 
     Raises:
-        ValueError: ``eye``, ``target`` or ``up`` not of shape ``(3,)``; ``image_shape``
-            not ``(H, W)`` or with a size < 1; an unknown ``projection``.
+        ValueError: ``eye``, ``target`` or ``up`` not of shape ``(3,)``, ``fov`` or
+            ``width`` not scalars; ``image_shape`` not ``(H, W)`` or with a size < 1;
+            an unknown ``projection``.
         TypeError: non-numeric (or bool) ``eye``, ``target``, ``up``, ``fov`` or
             ``width``; ``image_shape`` not ints.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``fov``
@@ -112,10 +113,13 @@ class Camera(eqx.Module):
             raise ValueError(f"{where}: `image_shape` must be (H, W), got {self.image_shape!r}.")
         for n in self.image_shape:
             _checks.positive_int(n, "image_shape", where)
-        for name in ("eye", "target", "up"):
-            if jnp.shape(getattr(self, name)) != (3,):
-                raise ValueError(f"{where}: `{name}` must have shape (3,), "
-                                 f"got {jnp.shape(getattr(self, name))}.")
+        for name, shape in (("eye", (3,)), ("target", (3,)), ("up", (3,)), ("fov", ()),
+                            ("width", ())):
+            if jnp.shape(getattr(self, name)) != shape:
+                raise ValueError(f"{where}: `{name}` must have shape {shape}, got "
+                                 f"{jnp.shape(getattr(self, name))}; for several views pass "
+                                 f"a list of cameras to the render, or jax.vmap a function "
+                                 f"that builds one.")
         _checks.refuse(self, self._degenerate(), where, traced=False)  # traced: in rays
 
     def _degenerate(self) -> list[tuple[Array, str]]:
@@ -172,7 +176,7 @@ class Camera(eqx.Module):
 
         Raises:
             ValueError: ``target`` not of shape ``(3,)``; a non-scalar ``azimuth``,
-                ``elevation`` or ``distance``; the errors of :class:`Camera` for
+                ``elevation``, ``distance``, ``fov`` or ``width``; the errors of :class:`Camera` for
                 ``image_shape`` and ``projection``.
             TypeError: non-numeric (or bool) arguments; ``image_shape`` not ints.
             ValueError / equinox.EquinoxRuntimeError (traced: at run time):
@@ -194,7 +198,7 @@ class Camera(eqx.Module):
         if leaves["target"].shape != (3,):
             raise ValueError(f"{where}: `target` must be a point (d, h, w), got shape "
                              f"{leaves['target'].shape}.")
-        for name in ("azimuth", "elevation", "distance"):
+        for name in ("azimuth", "elevation", "distance", "fov", "width"):
             if leaves[name].ndim != 0:
                 raise ValueError(f"{where}: `{name}` must be a scalar, got shape "
                                  f"{leaves[name].shape}; for several views pass a list of "

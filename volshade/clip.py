@@ -74,8 +74,11 @@ def _pose(center, rotation, where: str) -> tuple[Array, Array]:
     return center, rotation
 
 
-def _positive(value, name: str, where: str) -> Array:
+def _positive(value, name: str, where: str, shape: tuple[int, ...] = ()) -> Array:
     value = _checks.float_leaf(value, name, where)
+    if value.shape != shape:  # a batch of sizes would broadcast against the voxel grid
+        raise ValueError(f"{where}: `{name}` must have shape {shape} (voxels), got "
+                         f"{value.shape}; for several clips, build each inside jax.vmap.")
     _checks.refuse(value, [(_checks.not_positive(value),
                             f"`{name}` must be finite and > 0 (voxels).")], where, traced=False)
     return value
@@ -102,8 +105,9 @@ class Clip(eqx.Module):
 
     Raises:
         ValueError: a ``center`` that is not 3 finite numbers, a ``rotation`` that is
-            not a 3x3 orthonormal matrix, a size that is not finite and > 0 (when
-            known; traced values where the masks are computed).
+            not a 3x3 orthonormal matrix, a size that is not one number (three for
+            ``BoxClip``'s ``half_size``) or not finite and > 0 (when known; traced
+            values where the masks are computed).
         TypeError: a value that is not a real number.
     """
 
@@ -180,7 +184,7 @@ class BoxClip(Clip):
             raise ValueError(f"{where}: `half_size` must be one number or three (d, h, w), "
                              f"in voxels, got shape {half_size.shape}.")
         self.half_size = _positive(jnp.broadcast_to(half_size.astype(float), (3,)),
-                                   "half_size", where)
+                                   "half_size", where, (3,))
 
     def _local_distance(self, u, v, w):
         q = [jnp.abs(x) - h for x, h in zip((u, v, w), self.half_size, strict=True)]
@@ -281,6 +285,9 @@ def _within_reach(distances: Array, radius, clip: Clip) -> Array:
 
 
 def _shape_of(shape, where: str) -> tuple[int, int, int]:
+    if not isinstance(shape, tuple | list):
+        raise TypeError(f"{where}: `shape` must be a tuple of 3 positive ints (D, H, W), e.g. "
+                        f"`volume.shape`, got {shape!r:.80}.")
     shape = tuple(shape)
     if len(shape) != 3 or not all(isinstance(n, int | np.integer) and not isinstance(n, bool)
                                   and n >= 1 for n in shape):
@@ -307,7 +314,7 @@ def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
 
     Raises:
         ValueError: ``shape`` not 3 positive ints.
-        TypeError: ``clip`` not a clip shape.
+        TypeError: ``shape`` not a tuple or list, ``clip`` not a clip shape.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): a ``clip`` leaf
             that is not finite, a size that is not > 0 or a ``rotation`` that is not
             orthonormal (values set after it was built, e.g. with ``eqx.tree_at``, or
@@ -337,7 +344,8 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
 
     Raises:
         ValueError: ``shape`` not 3 positive ints, a non-scalar ``radius``.
-        TypeError: ``clip`` not a clip shape, a non-numeric (or bool) ``radius``.
+        TypeError: ``shape`` not a tuple or list, ``clip`` not a clip shape, a
+            non-numeric (or bool) ``radius``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``radius`` not
             a finite number > 0; a bad ``clip`` leaf (as for :func:`clip_mask`).
     """

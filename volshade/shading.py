@@ -41,6 +41,8 @@ class Phong(eqx.Module):
 
     Raises:
         TypeError: a non-numeric (or bool) coefficient.
+        ValueError: a coefficient that is not a scalar, when a render shades with it
+            (leaves may carry a batch axis, for ``jax.vmap``).
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): a coefficient
             that is not a finite number >= 0, or ``shininess <= 0``; traced values are
             checked when a render uses them.
@@ -69,7 +71,13 @@ class Phong(eqx.Module):
         return [*problems, (~(values["shininess"] > 0), "`shininess` must be > 0.")]
 
     def checked(self) -> "Phong":
-        """These coefficients, refused at run time where traced values are out of range."""
+        """These coefficients, refused at run time where traced values are out of range,
+        and at once where they are not scalars (a batch of settings is for vmap)."""
+        for name in ("ambient", "diffuse", "specular", "shininess"):
+            if jnp.ndim(getattr(self, name)) != 0:
+                raise ValueError(f"volshade.Phong: `{name}` must be a scalar to shade, got "
+                                 f"shape {jnp.shape(getattr(self, name))}; for a batch of "
+                                 f"settings, jax.vmap the render over the Phong module.")
         return _checks.refuse(self, self._problems(), "volshade.Phong")
 
 
