@@ -53,8 +53,10 @@ def test_saliency_modulation_smooths_the_same_way():
 @pytest.mark.parametrize("module", [vs.ObscuranceParams, vs.SaliencyModulation])
 @pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), True, "1"])
 def test_smoothing_must_be_a_finite_number_at_least_zero(bad, module):
-    with pytest.raises(ValueError, match=f"{module.__name__}: `smoothing` must be a finite "
-                                         f"number >= 0"):
+    # a number out of range is a bad value; a bool or a string, not a number at all
+    error, what = ((ValueError, "a finite number >= 0") if isinstance(bad, float)
+                   else (TypeError, "a number"))
+    with pytest.raises(error, match=f"{module.__name__}: `smoothing` must be {what}"):
         module(smoothing=bad)
 
 

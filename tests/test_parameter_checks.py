@@ -177,6 +177,13 @@ def test_nested_lists_become_arrays():
     (lambda: vs.Camera(eye=(0.0, 0.0, 2.0), target=(0.0, 0.0, 0.0), up=(1.0, 0.0, 0.0),
                        fov=30.0, width=[1.0, 2.0]), ValueError,
      r"volshade.Camera: `width` must have shape \(\)"),
+    (lambda: vs.Scene(volume=VOL, transfer=TF, ambient="volume",
+                      ambient_volume=jnp.full(VOL.shape, 0.5 + 0.5j)), TypeError,
+     "volshade.Scene: `ambient_volume` must have a real floating"),
+    (lambda: eqx.filter_jit(lambda s: vs.Scene(volume=VOL, transfer=TF, step=s))(
+        jnp.asarray(0.5)), TypeError, "volshade.Scene: `step` is static .* cannot be traced"),
+    (lambda: vs.projected_area(DENSITY, None), TypeError,
+     r"projected_area: `viewpoints` must be an \(L, 3\) array of directions, got None"),
     (lambda: vs.render(vs.Scene(volume=VOL, transfer=TF, shading="phong",
                                 phong=vs.Phong(ambient=[0.2, 0.4])), CAM), ValueError,
      "Phong: `ambient` must be a scalar to shade, got shape \\(2,\\); .* jax.vmap"),

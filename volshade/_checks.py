@@ -49,7 +49,7 @@ def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
                         f"got {x!r}.") from err
     if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.integer)):
         raise TypeError(f"{where}: `{name}` must be a real number or an array of them, "
-                        f"got {x!r} of dtype {arr.dtype}.")
+                        f"got {x!r:.80} of dtype {arr.dtype}.")
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         arr = arr.astype(jnp.result_type(float))
     return arr
@@ -243,6 +243,9 @@ def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:
 
 def positive_float(value: Any, name: str, where: str) -> float:
     """A static float option ``> 0``."""
+    if isinstance(value, jax.core.Tracer):
+        raise TypeError(f"{where}: `{name}` is static (a Python number) and cannot be "
+                        f"traced; close over it instead of passing it as a `jit` argument.")
     if isinstance(value, bool | np.bool_ | str | bytes):  # float("0.5") would pass
         raise TypeError(f"{where}: `{name}` must be a number, got {value!r}.")
     try:

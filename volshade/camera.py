@@ -239,7 +239,10 @@ class Camera(eqx.Module):
 
         Raises:
             ValueError: ``view`` not of shape ``(3,)``, or zero or not finite (when
-                traced: ``equinox.EquinoxRuntimeError`` at run time).
+                traced: ``equinox.EquinoxRuntimeError`` at run time); a bad
+                ``spacing``; the errors of :meth:`orbit` for its other keywords.
+            TypeError: a non-numeric (or bool) ``view``; ``azimuth`` or ``elevation``
+                given (the view sets them); a non-numeric or traced ``spacing``.
 
         Example:
             >>> cam = Camera.from_view(jnp.array([0.0, 1.0, 0.0]), image_shape=(8, 8))

@@ -140,6 +140,8 @@ class _Group(NamedTuple):
 
 def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     """Concrete ``(L, 3)`` directions as float64 numpy (they set the traced program)."""
+    if directions is None:
+        raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, got None.")
     try:
         complex_numbers = np.iscomplexobj(directions)
         dirs = np.asarray(directions, dtype=None if complex_numbers else np.float64)
@@ -843,7 +845,10 @@ def _static_number(value):
 def _check_smoothing(smoothing: float, where: str) -> None:
     """Refuse a ``smoothing`` that is not a finite number >= 0 (after
     :func:`_static_number`)."""
-    if not (isinstance(smoothing, float) and math.isfinite(smoothing) and smoothing >= 0):
+    if not isinstance(smoothing, float):  # a bool, a string, a traced or non-scalar array
+        raise TypeError(f"{where}: `smoothing` must be a number (Gaussian sigma in voxels, "
+                        f"static), got {smoothing!r:.80}.")
+    if not (math.isfinite(smoothing) and smoothing >= 0):
         raise ValueError(f"{where}: `smoothing` must be a finite number >= 0 (Gaussian "
                          f"sigma in voxels, static), got {smoothing!r}.")
 
@@ -903,9 +908,9 @@ class ObscuranceParams(eqx.Module):
 
     Raises:
         ValueError: an unknown ``rho`` or ``density``; ``level`` outside 0-4;
-            ``smoothing`` not a finite number >= 0 (a string or a bool included).
-        TypeError: non-numeric (or bool) ``d_max``, ``low`` or ``high``; ``level`` not
-            an int; ``color_bleeding`` not a bool.
+            ``smoothing`` not a finite number >= 0.
+        TypeError: non-numeric (or bool) ``d_max``, ``low``, ``high`` or
+            ``smoothing``; ``level`` not an int; ``color_bleeding`` not a bool.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``d_max`` not
             a finite number > 0, NaN or inf in ``low`` or ``high``, ``low > high``;
             traced values are checked when a render computes the obscurance.

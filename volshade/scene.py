@@ -294,6 +294,7 @@ class Scene(eqx.Module):
                              f"ambient='volume', got ambient={self.ambient!r}; set "
                              f"ambient='volume' or leave `ambient_volume` out.")
         if self.ambient_volume is not None:
+            _checks.as_float_array(self.ambient_volume, "ambient_volume", _WHERE)
             shape, ambient_shape = jnp.shape(self.volume), jnp.shape(self.ambient_volume)
             if ambient_shape not in (shape, (*shape, 3)):
                 raise ValueError(f"{_WHERE}: `ambient_volume` must have the shape of `volume`, "
