@@ -219,13 +219,14 @@ def _forward_kernel(params_ref, active_ref, source_ref, out_ref, *, pad, tile, s
         weight = params_ref[2 + 4 * index + 3]
 
         def sample_body(i, horner):
-            # back to front, the Horner form of eq. 3 (as the XLA march):
-            # H_i = H_{i+1} + 1 - alpha'_i H_{i+1}, H_{M-1} = 1, occ_l = M - H_0; summing
-            # the T_i instead would lose float32 precision where they are all near 1
+            # back to front, the Horner form of eq. 3, rounded as the XLA march rounds it
+            # (an opaque sample gives exactly 1): H_i = H_{i+1} + (1 - alpha'_i H_{i+1}),
+            # H_{M-1} = 1, occ_l = M - H_0; summing the T_i instead would lose float32
+            # precision where they are all near 1
             step, frac, shift = _position(radius, offset, samples, samples - 2 - i, direction)
             alpha = _blend_corners(frac, _windows(source_ref, origin, pad, tile, shift),
                                    exact=correction)
-            return (horner + 1) - _opacity(alpha, step, correction) * horner
+            return horner + (1 - _opacity(alpha, step, correction) * horner)
 
         horner = lax.fori_loop(0, samples - 1, sample_body, jnp.ones(tile, dtype))
         return total + weight * (samples - horner)
@@ -501,6 +502,9 @@ def occlusion_sum(alpha, directions, weights, radius, offset, *, pad, samples: i
     forward skips the tiles whose bricks of that edge have no opacity within ``pad``
     voxels (their sum is 0); the gradient is computed everywhere."""
     _check_launch(launch)
+    if samples < 2:  # M = 1 takes no sample: lao answers it without a kernel
+        raise ValueError(f"volshade._lao_pallas.occlusion_sum: `samples` must be >= 2, got "
+                         f"{samples}.")
     work = jnp.promote_types(alpha.dtype, jnp.float32)
     total = _occlusion_sum(pad, samples, correction, launch, brick,
                            *(jnp.asarray(x).astype(work)
