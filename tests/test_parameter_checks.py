@@ -17,6 +17,7 @@ TF = vs.transfer.preset("shells")
 CAM = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(6, 6))
 RNG = np.random.default_rng(0)
 DENSITY = jnp.asarray(RNG.random((8, 8, 8)), jnp.float32)
+VOL_SCENE = vs.Scene(volume=VOL, transfer=TF)
 
 
 def _obscurance_scene(params):
@@ -166,17 +167,19 @@ def test_nested_lists_become_arrays():
     (lambda: vs.BoxClip(center=(6.0, 6.0, 6.0), half_size=(1.0, 2.0)), ValueError,
      r"`half_size` must be one number or three .* got shape \(2,\)"),
     # a batch of sizes or of camera settings would fail later, in a broadcast naming nothing
-    (lambda: vs.SphereClip(center=(6.0, 6.0, 6.0), radius=[1.0, 2.0]), ValueError,
-     r"SphereClip: `radius` must have shape \(\) .* inside jax.vmap"),
-    (lambda: vs.TorusClip(center=(6.0, 6.0, 6.0), major=3.0, minor=[1.0, 2.0]), ValueError,
-     r"TorusClip: `minor` must have shape \(\)"),
+    (lambda: vs.clip_mask(VOL.shape, vs.SphereClip(center=(6.0, 6.0, 6.0), radius=[1.0, 2.0])),
+     ValueError, r"SphereClip: `radius` must have shape \(\) .* jax.vmap over them"),
+    (lambda: vs.affected_mask(VOL.shape, vs.TorusClip(center=(6.0, 6.0, 6.0), major=3.0,
+                                                      minor=[1.0, 2.0]), radius=2.0),
+     ValueError, r"TorusClip: `minor` must have shape \(\)"),
     (lambda: vs.clip_mask(8, vs.SphereClip(center=(4.0, 4.0, 4.0), radius=1.0)), TypeError,
-     r"clip_mask: `shape` must be a tuple of 3 positive ints"),
-    (lambda: vs.Camera.orbit(fov=[30.0, 40.0]), ValueError,
-     "Camera.orbit: `fov` must be a scalar, .* list of cameras"),
-    (lambda: vs.Camera(eye=(0.0, 0.0, 2.0), target=(0.0, 0.0, 0.0), up=(1.0, 0.0, 0.0),
-                       fov=30.0, width=[1.0, 2.0]), ValueError,
-     r"volshade.Camera: `width` must have shape \(\)"),
+     r"clip_mask: `shape` must be 3 positive ints"),
+    (lambda: vs.Camera.orbit(fov=[30.0, 40.0]).rays(), ValueError,
+     "Camera: `fov` must be a scalar where the rays are made, .* list of cameras"),
+    (lambda: vs.render(VOL_SCENE, vs.Camera(eye=(0.0, 0.0, 2.0), target=(0.0, 0.0, 0.0),
+                                            up=(1.0, 0.0, 0.0), fov=30.0, width=[1.0, 2.0],
+                                            projection="orthographic")), ValueError,
+     r"volshade.Camera: `width` must be a scalar where the rays are made"),
     (lambda: vs.Scene(volume=VOL, transfer=TF, ambient="volume",
                       ambient_volume=jnp.full(VOL.shape, 0.5 + 0.5j)), TypeError,
      "volshade.Scene: `ambient_volume` must have a real floating"),
@@ -188,7 +191,8 @@ def test_nested_lists_become_arrays():
                                 phong=vs.Phong(ambient=[0.2, 0.4])), CAM), ValueError,
      "Phong: `ambient` must be a scalar to shade, got shape \\(2,\\); .* jax.vmap"),
 ])
-def test_parameter_modules_refuse_bad_values_at_construction(build, exc, match):
+def test_bad_values_are_refused_by_name(build, exc, match):
+    # at construction where the module can tell, else where the value is used
     with pytest.raises(exc, match=match):
         build()
 
@@ -212,6 +216,20 @@ def test_modules_built_with_a_batch_axis_vmap():
                                                            level=0)(VOL, TF))
     with pytest.raises(ValueError, match="`low` must be <= `high`"):
         vs.ObscuranceParams(low=[0.0, 0.9], high=[1.0, 0.5])
+    # a clip's sizes and a camera's fov too, mapped over that leaf alone
+    only = lambda module, leaf: eqx.tree_at(  # noqa: E731
+        leaf, jax.tree_util.tree_map(lambda _: None, module), 0, is_leaf=lambda x: x is None)
+    clips = vs.SphereClip(center=(6.0, 6.0, 6.0), radius=[1.0, 2.5])
+    masks = eqx.filter_vmap(lambda c: vs.clip_mask(VOL.shape, c),
+                            in_axes=(only(clips, lambda c: c.radius),))(clips)
+    assert [int(m.sum()) for m in masks] == [
+        int(vs.clip_mask(VOL.shape, vs.SphereClip(center=(6.0, 6.0, 6.0), radius=r)).sum())
+        for r in (1.0, 2.5)]
+    cameras = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(6, 6), fov=[20.0, 40.0])
+    rays = eqx.filter_vmap(lambda c: c.rays()[1],
+                           in_axes=(only(cameras, lambda c: c.fov),))(cameras)
+    np.testing.assert_allclose(rays[1], vs.Camera.orbit(azimuth=30, elevation=20,
+                                                        image_shape=(6, 6), fov=40.0).rays()[1])
 
 
 def test_a_traced_focus_centre_outside_the_image_is_refused_where_it_is_used():

@@ -84,9 +84,9 @@ class Camera(eqx.Module):
         projection: ``"perspective"`` or ``"orthographic"`` (static).
 
     Raises:
-        ValueError: ``eye``, ``target`` or ``up`` not of shape ``(3,)``, ``fov`` or
-            ``width`` not scalars; ``image_shape`` not ``(H, W)`` or with a size < 1;
-            an unknown ``projection``.
+        ValueError: ``eye``, ``target`` or ``up`` not of shape ``(3,)``; ``image_shape``
+            not ``(H, W)`` or with a size < 1; an unknown ``projection``; ``fov`` or
+            ``width`` not scalars where the rays are made (a batch is for vmap).
         TypeError: non-numeric (or bool) ``eye``, ``target``, ``up``, ``fov`` or
             ``width``; ``image_shape`` not ints.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``fov``
@@ -113,13 +113,10 @@ class Camera(eqx.Module):
             raise ValueError(f"{where}: `image_shape` must be (H, W), got {self.image_shape!r}.")
         for n in self.image_shape:
             _checks.positive_int(n, "image_shape", where)
-        for name, shape in (("eye", (3,)), ("target", (3,)), ("up", (3,)), ("fov", ()),
-                            ("width", ())):
-            if jnp.shape(getattr(self, name)) != shape:
-                raise ValueError(f"{where}: `{name}` must have shape {shape}, got "
-                                 f"{jnp.shape(getattr(self, name))}; for several views pass "
-                                 f"a list of cameras to the render, or jax.vmap a function "
-                                 f"that builds one.")
+        for name in ("eye", "target", "up"):
+            if jnp.shape(getattr(self, name)) != (3,):
+                raise ValueError(f"{where}: `{name}` must have shape (3,), "
+                                 f"got {jnp.shape(getattr(self, name))}.")
         _checks.refuse(self, self._degenerate(), where, traced=False)  # traced: in rays
 
     def _degenerate(self) -> list[tuple[Array, str]]:
@@ -142,7 +139,15 @@ class Camera(eqx.Module):
         return checks
 
     def _valid(self) -> "Camera":
-        """This camera with the checks of :meth:`_degenerate` (run time for traced values)."""
+        """This camera with the checks of :meth:`_degenerate` (run time for traced
+        values); ``fov`` and ``width`` must be scalars here (built with a batch axis, a
+        camera is for vmap: they would broadcast against the image)."""
+        for name in ("fov", "width"):
+            if jnp.ndim(getattr(self, name)) != 0:
+                raise ValueError(f"volshade.Camera: `{name}` must be a scalar where the "
+                                 f"rays are made, got shape {jnp.shape(getattr(self, name))}"
+                                 f"; for several views pass a list of cameras to the "
+                                 f"render, or jax.vmap over the camera.")
         return _checks.refuse(self, self._degenerate(), "volshade.Camera")
 
     @classmethod
@@ -176,7 +181,7 @@ class Camera(eqx.Module):
 
         Raises:
             ValueError: ``target`` not of shape ``(3,)``; a non-scalar ``azimuth``,
-                ``elevation``, ``distance``, ``fov`` or ``width``; the errors of :class:`Camera` for
+                ``elevation`` or ``distance``; the errors of :class:`Camera` for
                 ``image_shape`` and ``projection``.
             TypeError: non-numeric (or bool) arguments; ``image_shape`` not ints.
             ValueError / equinox.EquinoxRuntimeError (traced: at run time):
@@ -198,7 +203,7 @@ class Camera(eqx.Module):
         if leaves["target"].shape != (3,):
             raise ValueError(f"{where}: `target` must be a point (d, h, w), got shape "
                              f"{leaves['target'].shape}.")
-        for name in ("azimuth", "elevation", "distance", "fov", "width"):
+        for name in ("azimuth", "elevation", "distance"):
             if leaves[name].ndim != 0:
                 raise ValueError(f"{where}: `{name}` must be a scalar, got shape "
                                  f"{leaves[name].shape}; for several views pass a list of "

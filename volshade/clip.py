@@ -74,11 +74,8 @@ def _pose(center, rotation, where: str) -> tuple[Array, Array]:
     return center, rotation
 
 
-def _positive(value, name: str, where: str, shape: tuple[int, ...] = ()) -> Array:
+def _positive(value, name: str, where: str) -> Array:
     value = _checks.float_leaf(value, name, where)
-    if value.shape != shape:  # a batch of sizes would broadcast against the voxel grid
-        raise ValueError(f"{where}: `{name}` must have shape {shape} (voxels), got "
-                         f"{value.shape}; for several clips, build each inside jax.vmap.")
     _checks.refuse(value, [(_checks.not_positive(value),
                             f"`{name}` must be finite and > 0 (voxels).")], where, traced=False)
     return value
@@ -105,15 +102,17 @@ class Clip(eqx.Module):
 
     Raises:
         ValueError: a ``center`` that is not 3 finite numbers, a ``rotation`` that is
-            not a 3x3 orthonormal matrix, a size that is not one number (three for
-            ``BoxClip``'s ``half_size``) or not finite and > 0 (when known; traced
-            values where the masks are computed).
+            not a 3x3 orthonormal matrix, a size that is not finite and > 0 (when
+            known; traced values where the masks are computed); where a clip is used, a
+            size that is not one number (three for ``BoxClip``'s ``half_size``): a
+            batch of sizes is for vmap.
         TypeError: a value that is not a real number.
     """
 
     center: Float[Array, "3"]
     rotation: Float[Array, "3 3"]
     sizes = ()  # the names of the size leaves (voxels, > 0)
+    size_shape = ()  # the shape of each, where a clip is used (a batch is for vmap)
 
     def _without_gradient(self) -> dict[str, str]:
         """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
@@ -174,6 +173,7 @@ class BoxClip(Clip):
 
     half_size: Float[Array, "3"]
     sizes = ("half_size",)
+    size_shape = (3,)
 
     def __init__(self, *, center: ArrayLike, half_size: ArrayLike,
                  rotation: ArrayLike | None = None):
@@ -184,7 +184,7 @@ class BoxClip(Clip):
             raise ValueError(f"{where}: `half_size` must be one number or three (d, h, w), "
                              f"in voxels, got shape {half_size.shape}.")
         self.half_size = _positive(jnp.broadcast_to(half_size.astype(float), (3,)),
-                                   "half_size", where, (3,))
+                                   "half_size", where)
 
     def _local_distance(self, u, v, w):
         q = [jnp.abs(x) - h for x, h in zip((u, v, w), self.half_size, strict=True)]
@@ -241,7 +241,15 @@ class HalfSpaceClip(Clip):
 
 def _checked(clip: Clip) -> Clip:
     """``clip`` with its traced leaves checked at run time (known ones were checked when
-    it was built): finite, sizes > 0, an orthonormal rotation."""
+    it was built): finite, sizes > 0, an orthonormal rotation; and, at once, sizes of
+    one clip (built with a batch axis, a clip is for vmap: its sizes would broadcast
+    against the voxel grid)."""
+    where = f"volshade.{type(clip).__name__}"
+    for name in clip.sizes:
+        if jnp.shape(getattr(clip, name)) != clip.size_shape:
+            raise ValueError(f"{where}: `{name}` must have shape {clip.size_shape} (voxels) "
+                             f"where the clip is used, got {jnp.shape(getattr(clip, name))};"
+                             f" for a batch of clips, jax.vmap over them.")
     leaves = [clip.center, clip.rotation, *(getattr(clip, name) for name in clip.sizes)]
     xp, *leaves = _checks.for_check(*leaves)
     finite = functools.reduce(xp.logical_and, [xp.all(xp.isfinite(x)) for x in leaves])
@@ -250,7 +258,7 @@ def _checked(clip: Clip) -> Clip:
     return _checks.refuse(
         clip, [(~(finite & positive & _orthonormal(clip.rotation)),
                 "the clip's leaves must be finite, its sizes > 0 and `rotation` orthonormal "
-                "(a rotation matrix).")], f"volshade.{type(clip).__name__}")
+                "(a rotation matrix).")], where)
 
 
 def _voxel_distances(shape: tuple[int, int, int], clip: Clip) -> Array:
@@ -285,10 +293,11 @@ def _within_reach(distances: Array, radius, clip: Clip) -> Array:
 
 
 def _shape_of(shape, where: str) -> tuple[int, int, int]:
-    if not isinstance(shape, tuple | list):
-        raise TypeError(f"{where}: `shape` must be a tuple of 3 positive ints (D, H, W), e.g. "
-                        f"`volume.shape`, got {shape!r:.80}.")
-    shape = tuple(shape)
+    try:
+        shape = tuple(shape)
+    except TypeError as err:
+        raise TypeError(f"{where}: `shape` must be 3 positive ints (D, H, W), e.g. "
+                        f"`volume.shape`, got {shape!r:.80}.") from err
     if len(shape) != 3 or not all(isinstance(n, int | np.integer) and not isinstance(n, bool)
                                   and n >= 1 for n in shape):
         raise ValueError(f"{where}: `shape` must be 3 positive ints (D, H, W), got {shape}.")
@@ -314,7 +323,7 @@ def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
 
     Raises:
         ValueError: ``shape`` not 3 positive ints.
-        TypeError: ``shape`` not a tuple or list, ``clip`` not a clip shape.
+        TypeError: ``shape`` not a sequence, ``clip`` not a clip shape.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): a ``clip`` leaf
             that is not finite, a size that is not > 0 or a ``rotation`` that is not
             orthonormal (values set after it was built, e.g. with ``eqx.tree_at``, or
@@ -344,8 +353,8 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
 
     Raises:
         ValueError: ``shape`` not 3 positive ints, a non-scalar ``radius``.
-        TypeError: ``shape`` not a tuple or list, ``clip`` not a clip shape, a
-            non-numeric (or bool) ``radius``.
+        TypeError: ``shape`` not a sequence, ``clip`` not a clip shape, a non-numeric
+            (or bool) ``radius``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``radius`` not
             a finite number > 0; a bad ``clip`` leaf (as for :func:`clip_mask`).
     """
