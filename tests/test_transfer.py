@@ -127,11 +127,12 @@ def test_features():
         feature_opacities(vol, [IntervalFeature(0.0, 0.5)])
     with pytest.raises(ValueError, match="empty"):
         feature_opacities(vol, [])
-    with pytest.raises(ValueError, match="`low` < `high`"):
+    with pytest.raises(ValueError, match="finite `low` < `high`"):
         IntervalFeature(0.5, 0.5)
-    # an infinite end leaves that side open
-    np.testing.assert_array_equal(IntervalFeature(0.5, np.inf).opacity(vol, tf),
-                                  np.where(np.asarray(vol) >= 0.5, tf.opacity(vol), 0))
+    # finite, as a render requires of every scene parameter
+    for low, high in ((0.5, np.inf), (-np.inf, 0.5), (np.nan, 0.5)):
+        with pytest.raises(ValueError, match="need finite `low` < `high`"):
+            IntervalFeature(low, high)
 
 
 def test_interval_features_with_a_batch_axis_or_traced_bounds():
@@ -142,7 +143,7 @@ def test_interval_features_with_a_batch_axis_or_traced_bounds():
     ops = jax.vmap(lambda f: f.opacity(vol, tf))(batched)
     for i, (low, high) in enumerate(((0.0, 0.5), (0.5, 1.0))):
         np.testing.assert_array_equal(ops[i], IntervalFeature(low, high).opacity(vol, tf))
-    with pytest.raises(ValueError, match="`low` < `high`"):
+    with pytest.raises(ValueError, match="finite `low` < `high`"):
         IntervalFeature([0.0, 0.5], [0.5, 0.4])
     # bounds traced under jit (even in a list) are checked where they are used
     lists = jax.jit(lambda low, high: IntervalFeature([low], [high]))(0.0, 0.5)
@@ -150,7 +151,8 @@ def test_interval_features_with_a_batch_axis_or_traced_bounds():
     select = eqx.filter_jit(lambda low, high: IntervalFeature(low, high).opacity(vol, tf))
     np.testing.assert_array_equal(select(jnp.asarray(0.0), jnp.asarray(0.5)), ops[0])
     for low, high in ((0.6, 0.5), (jnp.nan, 0.5)):
-        with pytest.raises(eqx.EquinoxRuntimeError, match="IntervalFeature: need `low` < `high`"):
+        with pytest.raises(eqx.EquinoxRuntimeError,
+                           match="IntervalFeature: need finite `low` < `high`"):
             jax.block_until_ready(select(jnp.asarray(low), jnp.asarray(high)))
 
 

@@ -214,13 +214,13 @@ class IntervalFeature(eqx.Module):
     Args:
         low, high: the interval's ends, in the intensity units of the base transfer
             function's ``points``, ``low < high`` (array leaves; the selection is a
-            step in them, so they get no gradient). An infinite end leaves that side
-            open (``IntervalFeature(0.5, inf)``: every value from 0.5 on).
+            step in them, so they get no gradient). Finite, as every scene parameter
+            (for an open side, use the transfer function's end point).
 
     Raises:
         TypeError: a non-numeric (or bool) ``low`` or ``high``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``low >= high``
-            or a NaN end; traced values are checked where the feature is used
+            or an end that is not finite; traced values are checked where the feature is used
             (:meth:`opacity`, :func:`feature_opacities`).
     """
 
@@ -235,8 +235,9 @@ class IntervalFeature(eqx.Module):
         # (traced bounds are checked where they are used, in _select)
         known_low, known_high = _checks.concrete(low), _checks.concrete(high)
         if known_low is not None and known_high is not None and \
-                not np.all(known_low < known_high):
-            raise ValueError(f"{where}: need `low` < `high` (not NaN), got {low}, {high}.")
+                not np.all(np.isfinite(known_low) & np.isfinite(known_high)
+                            & (known_low < known_high)):
+            raise ValueError(f"{where}: need finite `low` < `high`, got {low}, {high}.")
 
     def _without_gradient(self) -> dict[str, str]:
         """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""
@@ -254,8 +255,10 @@ class IntervalFeature(eqx.Module):
         # lies inside [0.2, 0.4] whatever the dtype the bounds were made in
         low, high = self.low.astype(volume.dtype), self.high.astype(volume.dtype)
         selected = jnp.where((volume >= low) & (volume <= high), base_opacity, 0)
-        return _checks.refuse(selected, [(~jnp.all(self.low < self.high),
-                                          "need `low` < `high` (not NaN).")],
+        return _checks.refuse(selected, [(~jnp.all(jnp.isfinite(self.low)
+                                                   & jnp.isfinite(self.high)
+                                                   & (self.low < self.high)),
+                                          "need finite `low` < `high`.")],
                               "volshade.IntervalFeature")
 
 
