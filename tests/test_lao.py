@@ -119,6 +119,9 @@ def test_uniform_medium_centre(corr):
 def test_single_sample_gives_one():
     ao = lao(_random_alpha((16, 16, 16), 1), directions=4, radius=4.0, samples=1)
     assert bool(jnp.all(ao == 1))
+    # the ones read every input (for their checks) without overflowing on huge ones
+    huge = lao(_random_alpha((4, 4, 4), 1), directions=4, radius=3e38, offset=2e38, samples=1)
+    assert huge.dtype == jnp.float32 and bool(jnp.all(huge == 1))
 
 
 def test_int_directions_mean_fibonacci():
