@@ -75,6 +75,12 @@ def test_from_points_errors():
         TransferFunction.from_points([(0.5, 0, 0, 0, 0), (0.2, 0, 0, 0, 0)])
     with pytest.raises(ValueError, match="rows"):
         TransferFunction.from_points([(0.5, 0, 0, 0)])
+    with pytest.raises(ValueError, match="of 5 numbers each"):
+        TransferFunction.from_points([(0.0, 0, 0, 0, 0), (1.0, 1, 1, 1)])
+    # converted, a complex opacity would lose its imaginary part
+    for points in ([(0.0, 0, 0, 0, 0), (1.0, 1, 1, 1, 0.2 + 0.5j)], [(0.0, 0, 0, 0, "a")]):
+        with pytest.raises(TypeError, match="from_points: `points` must be rows of 5 real"):
+            TransferFunction.from_points(points)
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         TransferFunction.from_points([(0.0, 0, 0, 0, 1.5)])
     with pytest.raises(ValueError, match="NaN"):

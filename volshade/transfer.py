@@ -143,7 +143,16 @@ class TransferFunction(eqx.Module):
                 colours or opacities outside [0, 1], or non-finite values.
         """
         where = "volshade.TransferFunction.from_points"
-        table = np.asarray(points, dtype=float)
+        try:
+            table = np.asarray(points)
+        except ValueError as err:  # rows of different lengths
+            raise ValueError(f"{where}: `points` must be rows (intensity, r, g, b, opacity) "
+                             f"of 5 numbers each, got {points!r:.80}.") from err
+        # converted, a complex number would lose its imaginary part, a bool pass as 0/1
+        if table.dtype.kind not in "iuf":
+            raise TypeError(f"{where}: `points` must be rows of 5 real numbers (intensity, "
+                            f"r, g, b, opacity), got {table.dtype} values.")
+        table = table.astype(float)
         if table.ndim != 2 or table.shape[1] != 5 or table.shape[0] < 1:
             raise ValueError(f"{where}: `points` must be rows (intensity, r, g, b, opacity), "
                              f"got shape {table.shape}.")
