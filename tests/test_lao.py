@@ -434,6 +434,15 @@ def test_bad_inputs_raise_clear_errors():
         lao(alpha, directions=dirs, radius=0.5, offset=0.0, max_radius=True)
 
 
+def test_single_sample_module_under_jit_checks_its_opacity():
+    # the samples=1 shortcut of lao, reached through the parameter Module
+    params = LocalAmbientOcclusion(3.0, directions=4, samples=1)
+    ao = eqx.filter_jit(lambda p, a: p(a))
+    assert bool(jnp.all(ao(params, jnp.full((6, 6, 6), 0.5)) == 1))
+    with pytest.raises(Exception, match="NaN"):
+        jax.block_until_ready(ao(params, jnp.full((6, 6, 6), 0.5).at[1, 2, 3].set(jnp.nan)))
+
+
 @pytest.mark.parametrize("samples", [16, 1])  # M = 1 takes no sample but checks as much
 def test_bad_values_raise_under_jit(samples):
     alpha = jnp.full((8, 8, 8), 0.5, jnp.float32)

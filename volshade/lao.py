@@ -613,7 +613,7 @@ def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
         arr = _checks.as_float_array(value, name, where).astype(dtype)  # refuses complex
     except TypeError as err:
         raise TypeError(f"{where}: `{name}` must be a real number (voxels), "
-                        f"got {value!r}.") from err
+                        f"got {value!r:.80}.") from err
     if arr.shape != ():
         raise ValueError(f"{where}: `{name}` must be a scalar (voxels), got shape "
                          f"{arr.shape}; for several values use `jax.vmap`.")

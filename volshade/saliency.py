@@ -407,17 +407,7 @@ def least_salient_view(
     visibility: str = "transmittance",
 ) -> Float[Array, "3"]:
     """The viewpoint of smallest :func:`viewpoint_saliency` (Figure 6 d); see
-    :func:`most_salient_view`.
-
-    Raises:
-        ValueError: ``saliency`` or ``opacity`` not 3-D or empty, or of different
-            shapes; ``viewpoints`` not of shape ``(V, 3)`` with ``V >= 1``, or holding
-            NaN, inf or a zero vector; an unknown ``visibility``.
-        TypeError: non-numeric inputs; ``viewpoints`` traced (they must be concrete),
-            a number or complex; ``per_area`` not a bool.
-        ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in
-            ``saliency`` or ``opacity``, ``opacity`` outside [0, 1].
-    """
+    :func:`most_salient_view`, whose errors it raises."""
     return _select(saliency, opacity, viewpoints, per_area, visibility, jnp.argmin,
                    "volshade.saliency.least_salient_view")
 

@@ -218,7 +218,8 @@ class Scene(eqx.Module):
             ``shading="obscurance"``) set to other than its default; ``clip`` with
             ``ambient="feature_ao"`` or ``"obscurance"`` or ``modulation="saliency"``;
             ``background`` not of shape ``(3,)``.
-        TypeError: non-numeric ``volume`` or ``background`` (a bool ``background``);
+        TypeError: non-numeric ``volume``, ``ambient_volume`` (complex included) or
+            ``background`` (a bool ``background``);
             ``step`` or ``spacing`` not numbers, or traced (they are static);
             ``transfer``, ``lao``, ``feature_ao``, ``obscurance``, ``saliency``,
             ``phong``, ``importance``, ``focus`` or ``clip`` not of its volshade type.
