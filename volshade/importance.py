@@ -607,8 +607,9 @@ class Focus(eqx.Module):
             :meth:`weights`, a non-scalar ``radius``, ``inside`` or ``outside``.
         TypeError: a non-numeric (or bool) field.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): from
-            :meth:`weights` (and so a render), ``radius`` not a finite number > 0, NaN
-            or inf in ``center``, ``inside`` or ``outside``.
+            :meth:`weights` (and so a render), ``radius`` not a finite number > 0,
+            ``center`` outside [0, 1], NaN or inf in ``center``, ``inside`` or
+            ``outside``.
     """
 
     center: Float[Array, "2"] = eqx.field(

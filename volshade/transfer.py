@@ -229,8 +229,8 @@ class IntervalFeature(eqx.Module):
     Raises:
         TypeError: a non-numeric (or bool) ``low`` or ``high``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``low >= high``
-            or an end that is not finite; traced values are checked where the feature is used
-            (:meth:`opacity`, :func:`feature_opacities`).
+            or an end that is not finite; traced values are checked where the feature
+            is used (:meth:`opacity`, :func:`feature_opacities`).
     """
 
     low: Float[Array, ""]
