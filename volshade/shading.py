@@ -18,7 +18,7 @@ References:
 """
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -56,6 +56,7 @@ class Phong(eqx.Module):
         converter=_checks.leaf("volshade.Phong", "specular"), default=0.25)
     shininess: Float[Array, ""] = eqx.field(
         converter=_checks.leaf("volshade.Phong", "shininess"), default=24.0)
+    _COEFFICIENTS: ClassVar[tuple[str, ...]] = ("ambient", "diffuse", "specular", "shininess")
 
     def __check_init__(self):
         # checked here when known (built eagerly; leaves may carry a batch axis for
@@ -64,8 +65,7 @@ class Phong(eqx.Module):
 
     def _problems(self) -> list[tuple[Array, str]]:
         # as arrays: a leaf set to a Python float (eqx.tree_at) would make `~` bitwise
-        values = {name: jnp.asarray(getattr(self, name))
-                  for name in ("ambient", "diffuse", "specular", "shininess")}
+        values = {name: jnp.asarray(getattr(self, name)) for name in self._COEFFICIENTS}
         problems = [(~(jnp.isfinite(v) & (v >= 0)), f"`{name}` must be a finite number >= 0.")
                     for name, v in values.items()]
         return [*problems, (~(values["shininess"] > 0), "`shininess` must be > 0.")]
@@ -73,7 +73,7 @@ class Phong(eqx.Module):
     def checked(self) -> "Phong":
         """These coefficients, refused at run time where traced values are out of range,
         and at once where they are not scalars (a batch of settings is for vmap)."""
-        for name in ("ambient", "diffuse", "specular", "shininess"):
+        for name in self._COEFFICIENTS:
             if jnp.ndim(getattr(self, name)) != 0:
                 raise ValueError(f"volshade.Phong: `{name}` must be a scalar to shade, got "
                                  f"shape {jnp.shape(getattr(self, name))}; for a batch of "

@@ -215,6 +215,12 @@ class TransferFunction(eqx.Module):
         return tf._rgba(volume, _step(step, f"{_WHERE}.__call__"))
 
 
+def _ordered(xp, low, high):
+    """Whether every interval ``[low, high]`` has finite ends, ``low < high`` (``xp``:
+    NumPy for the known ends, ``jax.numpy`` for traced ones)."""
+    return xp.all(xp.isfinite(low) & xp.isfinite(high) & (low < high))
+
+
 class IntervalFeature(eqx.Module):
     """A feature given by an intensity interval ``[low, high]`` of a base transfer function.
 
@@ -244,8 +250,7 @@ class IntervalFeature(eqx.Module):
         # (traced bounds are checked where they are used, in _select)
         known_low, known_high = _checks.concrete(low), _checks.concrete(high)
         if known_low is not None and known_high is not None and \
-                not np.all(np.isfinite(known_low) & np.isfinite(known_high)
-                            & (known_low < known_high)):
+                not _ordered(np, known_low, known_high):
             raise ValueError(f"{where}: need finite `low` < `high`, got {low}, {high}.")
 
     def _without_gradient(self) -> dict[str, str]:
@@ -264,9 +269,7 @@ class IntervalFeature(eqx.Module):
         # lies inside [0.2, 0.4] whatever the dtype the bounds were made in
         low, high = self.low.astype(volume.dtype), self.high.astype(volume.dtype)
         selected = jnp.where((volume >= low) & (volume <= high), base_opacity, 0)
-        return _checks.refuse(selected, [(~jnp.all(jnp.isfinite(self.low)
-                                                   & jnp.isfinite(self.high)
-                                                   & (self.low < self.high)),
+        return _checks.refuse(selected, [(~_ordered(jnp, self.low, self.high),
                                           "need finite `low` < `high`.")],
                               "volshade.IntervalFeature")
 
