@@ -369,3 +369,19 @@ def test_scene_turns_a_nested_list_volume_into_an_array():
     # (a list of Python floats becomes float64 under x64)
     np.testing.assert_allclose(vs.render(scene, CAM),
                                vs.render(vs.Scene(volume=VOL, transfer=TF), CAM), atol=1e-5)
+
+
+@pytest.mark.parametrize("value", [jnp.asarray(0.5), np.float32(0.5), np.asarray(0.5)])
+def test_static_steps_given_as_arrays_are_kept_as_python_floats(value, recwarn):
+    # a JAX array was kept in the static field (documented as a float) and equinox
+    # warned: the step and step0 become Python floats, as spacing becomes a tuple
+    scene = vs.Scene(volume=VOL, transfer=vs.TransferFunction(
+        TF.points, TF.colors, TF.opacities, step0=2 * value), step=value)
+    assert type(scene.step) is float and scene.step == 0.5
+    assert type(scene.transfer.step0) is float and scene.transfer.step0 == 1.0
+    hash(jax.tree_util.tree_structure(scene))
+    assert not [w for w in recwarn if "static" in str(w.message)]
+    np.testing.assert_allclose(
+        vs.render(scene, CAM),
+        vs.render(vs.Scene(volume=VOL, transfer=vs.TransferFunction(
+            TF.points, TF.colors, TF.opacities, step0=1.0), step=0.5), CAM), atol=1e-12)

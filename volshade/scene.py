@@ -235,7 +235,8 @@ class Scene(eqx.Module):
     transfer: TransferFunction
     spacing: tuple[float, float, float] = eqx.field(static=True, default=(1.0, 1.0, 1.0),
                                                     converter=lambda s: _checks.spacing(s, _WHERE))
-    step: float = eqx.field(static=True, default=0.5)
+    step: float = eqx.field(static=True, default=0.5,  # a Python float, as spacing's
+                            converter=lambda s: _checks.positive_float(s, "step", _WHERE))
     ambient: str = eqx.field(static=True, default="none")
     ambient_volume: Array | None = eqx.field(
         default=None, converter=lambda v: None if v is None else _as_array(v))
@@ -282,7 +283,6 @@ class Scene(eqx.Module):
         if not isinstance(self.transfer, TransferFunction):
             raise TypeError(f"{_WHERE}: `transfer` must be a volshade.TransferFunction, "
                             f"got {type(self.transfer).__name__}.")
-        _checks.positive_float(self.step, "step", _WHERE)
         _checks.option(self.ambient, AMBIENT, "ambient", _WHERE)
         _checks.option(self.modulation, MODULATION, "modulation", _WHERE)
         _checks.option(self.shading, SHADERS, "shading", _WHERE)

@@ -76,7 +76,9 @@ class TransferFunction(eqx.Module):
     points: Float[Array, " K"] = eqx.field(converter=_checks.leaf(_WHERE, "points"))
     colors: Float[Array, "K 3"] = eqx.field(converter=_checks.leaf(_WHERE, "colors"))
     opacities: Float[Array, " K"] = eqx.field(converter=_checks.leaf(_WHERE, "opacities"))
-    step0: float = eqx.field(static=True, default=1.0)
+    # a Python float (equinox warns of a JAX array in a static field)
+    step0: float = eqx.field(static=True, default=1.0,
+                             converter=lambda s: _checks.positive_float(s, "step0", _WHERE))
 
     def __check_init__(self):
         k = jnp.shape(self.points)
@@ -88,7 +90,6 @@ class TransferFunction(eqx.Module):
         if jnp.shape(self.opacities) != k:
             raise ValueError(f"{_WHERE}: `opacities` must have shape {k} to match `points`, "
                              f"got {jnp.shape(self.opacities)}.")
-        _checks.positive_float(self.step0, "step0", _WHERE)
         _checks.refuse(self, self._problems(), _WHERE, traced=False)  # traced: when used
 
     def _problems(self) -> list[tuple[Array, str]]:
