@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from skimage import io
 
+import volshade as vs
 from volshade import cli
 
 
@@ -96,3 +97,65 @@ def test_cli_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "volshade: error: volshade.render: `scene.background` contains NaN" in err
     assert "Traceback" not in err and "EQX_ON_ERROR" not in err
+
+
+class _Built(Exception):
+    """Stops `volshade render` once its Scene is built, with the Scene."""
+
+
+def _scene_of(argv, monkeypatch):
+    """The Scene that `volshade render ARGV` would render (the render is skipped)."""
+    def built(**kwargs):
+        raise _Built(vs.Scene(**kwargs))
+
+    monkeypatch.setattr(cli, "Scene", built)
+    with pytest.raises(_Built) as stop:
+        cli.main(["render", *argv])
+    return stop.value.args[0]
+
+
+def test_ambient_options_in_mm_and_the_defaults_for_real_data(tmp_path, monkeypatch):
+    nib = pytest.importorskip("nibabel")
+    path = tmp_path / "head.nii.gz"  # real data, 2 mm voxels
+    volume = np.random.default_rng(0).random((8, 9, 10)).astype(np.float32)
+    nib.save(nib.Nifti1Image(volume, np.diag([2.0, 2.0, 2.0, 1.0])), path)
+    out = ["--out", str(tmp_path / "x.png"), "--image", "8"]
+    # real data: smoothed by one voxel edge and displayed with high 0.6 unless told
+    params = _scene_of([str(path), *out, "--ambient", "obscurance"], monkeypatch).obscurance
+    assert (params.smoothing, float(params.high), float(params.d_max)) == (1.0, 0.6, 16.0)
+    params = _scene_of([str(path), *out, "--ambient", "obscurance", "--smoothing", "0",
+                        "--high", "1", "--d-max", "8", "--low", "0.1", "--colour-bleeding"],
+                       monkeypatch).obscurance
+    assert (params.smoothing, float(params.high), float(params.d_max), float(params.low),
+            params.color_bleeding) == (0.0, 1.0, 4.0, 0.1, True)
+    lao = _scene_of([str(path), *out, "--ambient", "lao", "--radius", "6", "--offset", "1"],
+                    monkeypatch).lao
+    assert (float(lao.radius), float(lao.offset)) == (3.0, 0.5)
+    # phantoms (1 mm voxels): the ObscuranceParams defaults
+    params = _scene_of(["shells", *out, "--size", "8", "--ambient", "obscurance"],
+                       monkeypatch).obscurance
+    assert (params.smoothing, float(params.high), float(params.d_max)) == (0.0, 1.0, 32.0)
+
+
+def test_options_that_do_not_apply_are_refused(tmp_path, capsys):
+    out = ["--out", str(tmp_path / "x.png"), "--image", "8"]
+    for argv, message in [
+        (["shells", "--downsample", "2"], "--downsample applies to real data; for the "
+                                          "phantom 'shells' use --size"),
+        (["shells", "--radius", "3"], "--radius is read only with --ambient lao, got "
+                                      "--ambient none"),
+        (["shells", "--ambient", "lao", "--d-max", "3", "--colour-bleeding"],
+         "--d-max and --colour-bleeding are read only with --ambient obscurance"),
+        (["shells", "--ambient", "lao", "--radius", "1", "--offset", "2"],
+         "--radius and --offset need radius > offset >= 0 (mm), got 1 and 2"),
+        (["shells", "--ambient", "obscurance", "--smoothing", "-1"],
+         "--d-max must be > 0 and --smoothing >= 0 (mm), got 32 and -1"),
+        (["shells", "--ambient", "obscurance", "--low", "0.7", "--high", "0.2"],
+         "`low` must be <= `high`"),
+    ]:
+        assert cli.main(["render", *argv, *out]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("volshade: error: ") and message in err, err
+    bogus = tmp_path / "x.nii.gz"  # (the check comes before the file is read)
+    assert cli.main(["render", str(bogus), *out, "--size", "16"]) == 2
+    assert "--size sets a phantom's edge" in capsys.readouterr().err

@@ -8,7 +8,10 @@ VOLUME is a phantom name (shells, corner, orange, bucky, noise), a real-data
 name (colin27, mni152, mni152_gm, mni152_wm: found via VOLSHADE_DATA) or a path to a
 NIfTI file. The transfer function defaults to the volume's own preset (shells,
 corner, head for colin27; grey otherwise), and the corner phantom's labels are
-classified before interpolation.
+classified before interpolation. Lengths are in mm (a phantom's voxel is 1 mm).
+Obscurances of real data are smoothed by one voxel and displayed with high 0.6 by
+default: unsmoothed, the strict occlusion test on measured intensities draws the
+voxel grid on the skin as striations, and surfaces come out dark.
 """
 
 import argparse
@@ -27,6 +30,7 @@ from . import data, transfer
 from .camera import Camera
 from .importance import Focus, Importance
 from .lao import LocalAmbientOcclusion
+from .obscurance import ObscuranceParams
 from .render import save_png
 from .scene import AMBIENT, Scene, render
 from .shading import SHADERS
@@ -47,15 +51,63 @@ _PRESETS = {"shells": "shells", "corner": "corner", "colin27": "head"}
 _LABELS = ("corner",)
 
 
-def _load_volume(spec: str, downsample: int, size: int):
+def _is_measured(spec: str) -> bool:
+    """Whether ``spec`` names real data (a dataset or a NIfTI path) and not a phantom."""
     if spec in data.PHANTOMS:
-        return data.phantom(spec, shape=size), (1.0, 1.0, 1.0)
-    if spec in data.DATASETS:
-        return data.load(spec, downsample=downsample)
-    if pathlib.Path(spec).suffix in (".nii", ".gz"):
-        return data.load_nifti(spec, downsample=downsample)
+        return False
+    if spec in data.DATASETS or pathlib.Path(spec).suffix in (".nii", ".gz"):
+        return True
     valid = ", ".join([*data.PHANTOMS, *data.DATASETS])
     raise ValueError(f"unknown volume {spec!r}; use one of {valid} or a .nii/.nii.gz path.")
+
+
+def _load_volume(spec: str, downsample: int | None, size: int | None):
+    # an option that does not apply is refused, not ignored
+    if _is_measured(spec):
+        if size is not None:
+            raise ValueError(f"--size sets a phantom's edge; {spec!r} is real data (use "
+                             f"--downsample).")
+        loader = data.load if spec in data.DATASETS else data.load_nifti
+        return loader(spec, downsample=1 if downsample is None else downsample)
+    if downsample is not None:
+        raise ValueError(f"--downsample applies to real data; for the phantom {spec!r} "
+                         f"use --size.")
+    return data.phantom(spec, shape=96 if size is None else size), (1.0, 1.0, 1.0)
+
+
+# ambient option -> (CLI options that only it reads, as argparse dests)
+_AMBIENT_OPTIONS = {"lao": ("radius", "offset"),
+                    "obscurance": ("d_max", "smoothing", "low", "high", "colour_bleeding")}
+
+
+def _ambient_params(args: argparse.Namespace, voxel: float, measured: bool) -> dict:
+    """The Scene's ``lao`` or ``obscurance`` parameters from the CLI's options (mm ->
+    voxels of the loaded volume); the options of another ambient term are refused."""
+    for ambient, names in _AMBIENT_OPTIONS.items():
+        given = [f"--{n.replace('_', '-')}" for n in names
+                 if getattr(args, n) not in (None, False)]
+        if given and args.ambient != ambient:
+            raise ValueError(f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} "
+                             f"read only with --ambient {ambient}, got --ambient "
+                             f"{args.ambient}.")
+    if args.ambient == "lao":
+        radius = 16.0 if args.radius is None else args.radius
+        offset = 1.0 if args.offset is None else args.offset
+        if not radius > offset >= 0:  # (here, where the values are still in mm)
+            raise ValueError(f"--radius and --offset need radius > offset >= 0 (mm), got "
+                             f"{radius:g} and {offset:g}.")
+        return {"lao": LocalAmbientOcclusion(radius / voxel, offset=offset / voxel)}
+    if args.ambient == "obscurance":
+        d_max = 32.0 if args.d_max is None else args.d_max
+        smoothing = args.smoothing if args.smoothing is not None else voxel if measured else 0
+        if not (d_max > 0 and smoothing >= 0):
+            raise ValueError(f"--d-max must be > 0 and --smoothing >= 0 (mm), got {d_max:g} "
+                             f"and {smoothing:g}.")
+        high = args.high if args.high is not None else 0.6 if measured else 1.0
+        return {"obscurance": ObscuranceParams(
+            d_max=d_max / voxel, low=0.0 if args.low is None else args.low, high=high,
+            smoothing=smoothing / voxel, color_bleeding=args.colour_bleeding)}
+    return {}
 
 
 def _run_jobs(jobs: list[Job], out: pathlib.Path) -> list[tuple[str, float]]:
@@ -146,14 +198,16 @@ def render_command(args: argparse.Namespace) -> int:
         raise ValueError(f"--background must be three numbers in [0, 1] (R G B), got "
                          f"{' '.join(f'{c:g}' for c in args.background)}.")
     vol, spacing = _load_volume(args.volume, args.downsample, args.size)
+    voxel = float(min(spacing))
+    params = _ambient_params(args, voxel, _is_measured(args.volume))
     tf = transfer.preset(args.preset or _PRESETS.get(args.volume, "grey"))
     classification = args.classification or ("pre" if args.volume in _LABELS else "post")
     cam = Camera.orbit(azimuth=args.azimuth, elevation=args.elevation, distance=args.distance,
                        image_shape=(args.image, args.image), projection=args.projection)
-    step = args.step if args.step is not None else float(min(spacing)) / 2
+    step = args.step if args.step is not None else voxel / 2
     scene = Scene(volume=vol, spacing=spacing, transfer=tf, shading=args.shading,
                   ambient=args.ambient, step=step, background=tuple(args.background),
-                  classification=classification)
+                  classification=classification, **params)
     with tqdm(total=1, desc=f"rendering {args.volume}", unit="image") as bar:
         t0 = time.perf_counter()
         image = jax.block_until_ready(eqx.filter_jit(render)(scene, cam))
@@ -214,13 +268,33 @@ def _parser() -> argparse.ArgumentParser:
     p_render.add_argument("--projection", default="perspective",
                           choices=["perspective", "orthographic"], help="camera projection")
     p_render.add_argument("--image", type=int, default=256, help="image edge in pixels")
-    p_render.add_argument("--size", type=int, default=96, help="phantom edge in voxels")
-    p_render.add_argument("--downsample", type=int, default=1,
-                          help="integer block-mean factor for real data")
+    p_render.add_argument("--size", type=int, default=None,
+                          help="phantom edge in voxels (default: 96; phantoms only)")
+    p_render.add_argument("--downsample", type=int, default=None,
+                          help="integer block-mean factor (default: 1; real data only)")
     p_render.add_argument("--step", type=float, default=None,
                           help="sample distance in mm (default: half the smallest voxel edge)")
     p_render.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0),
                           metavar=("R", "G", "B"), help="colour behind the volume, in [0, 1]")
+    lao = p_render.add_argument_group("with --ambient lao")
+    lao.add_argument("--radius", type=float, default=None,
+                     help="LAO ray length R in mm (default: 16)")
+    lao.add_argument("--offset", type=float, default=None,
+                     help="LAO initial offset in mm, below the radius (default: 1)")
+    obscurance = p_render.add_argument_group("with --ambient obscurance")
+    obscurance.add_argument("--d-max", type=float, default=None,
+                            help="largest occluder distance in mm (default: 32)")
+    obscurance.add_argument("--smoothing", type=float, default=None,
+                            help="Gaussian sigma in mm on the density before the occluder "
+                                 "search (default: one voxel edge for real data, 0 for "
+                                 "phantoms)")
+    obscurance.add_argument("--low", type=float, default=None,
+                            help="display threshold: obscurance below it is 0 (default: 0)")
+    obscurance.add_argument("--high", type=float, default=None,
+                            help="display threshold: obscurance above it is 1 (default: 0.6 "
+                                 "for real data, 1 for phantoms)")
+    obscurance.add_argument("--colour-bleeding", action="store_true",
+                            help="tint by the occluders' colours")
     return parser
 
 
