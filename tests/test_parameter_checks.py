@@ -185,6 +185,8 @@ def test_nested_lists_become_arrays():
      "volshade.Scene: `ambient_volume` must have a real floating"),
     (lambda: eqx.filter_jit(lambda s: vs.Scene(volume=VOL, transfer=TF, step=s))(
         jnp.asarray(0.5)), TypeError, "volshade.Scene: `step` is static .* cannot be traced"),
+    (lambda: vs.Scene(volume=VOL, transfer=TF, background=(0.0, -0.5, 0.0)), ValueError,
+     r"volshade.Scene: `background` must lie in \[0, 1\] \(an RGB colour\)"),
     (lambda: vs.projected_area(DENSITY, None), TypeError,
      r"projected_area: `viewpoints` must be an \(L, 3\) array of directions, got None"),
     (lambda: vs.render(vs.Scene(volume=VOL, transfer=TF, shading="phong",
@@ -249,17 +251,21 @@ def test_parameter_modules_accept_traced_values():
 
 def test_traced_values_out_of_range_are_refused_by_the_renderer():
     # under jit (or in a fit) construction cannot see the values; the render checks them
-    def render(phong_ambient, darkening):
+    def render(phong_ambient, darkening, red=0.0):
         scene = vs.Scene(volume=VOL, transfer=TF, shading="phong",
                          phong=vs.Phong(ambient=phong_ambient), composition="importance",
-                         importance=vs.Importance(silhouette=1.0, darkening=darkening))
+                         importance=vs.Importance(silhouette=1.0, darkening=darkening),
+                         background=jnp.stack([red, 0.0, 0.0]))
         return vs.render(scene, CAM)
 
-    assert np.all(np.isfinite(jax.jit(render)(0.3, 4.0)))
+    assert np.all(np.isfinite(jax.jit(render)(0.3, 4.0, 1.0)))
     with pytest.raises(Exception, match="volshade.Phong: `ambient` must be a finite number"):
         jax.block_until_ready(jax.jit(render)(-1.0, 4.0))
     with pytest.raises(Exception, match="volshade.Importance: `darkening` must be >= 0"):
         jax.block_until_ready(jax.jit(render)(0.3, -10.0))
+    # (a PNG would clip it; the CLI refuses it too)
+    with pytest.raises(Exception, match=r"volshade.render: `background` must lie in \[0, 1\]"):
+        jax.block_until_ready(jax.jit(render)(0.3, 4.0, 1.5))
 
 
 def test_from_view_refuses_zero_and_nan_directions():

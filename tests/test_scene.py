@@ -444,8 +444,8 @@ def test_non_finite_parameters_are_refused_by_name(jit):
         # a NaN that skipped construction (a fit, eqx.tree_at): refused at render
         (eqx.tree_at(lambda s: s.phong.diffuse, phong_scene, jnp.asarray(jnp.nan)),
          cam, "scene.phong.diffuse"),
-        (vs.Scene(volume=vol, transfer=tf, background=(jnp.inf, 0.0, 0.0)), cam,
-         "scene.background"),
+        (eqx.tree_at(lambda s: s.background, vs.Scene(volume=vol, transfer=tf),
+                     jnp.asarray([jnp.inf, 0.0, 0.0])), cam, "scene.background"),
         (vs.Scene(volume=vol, transfer=tf), nan_eye, "camera.eye"),
         # -inf is allowed only where Importance declares it (the background), never +inf
         (eqx.tree_at(lambda s: s.importance.background, importance_scene,

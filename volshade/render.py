@@ -91,7 +91,7 @@ def march(
         ambient: optional ``(D, H, W)`` or ``(D, H, W, 3)`` ambient factor in
             [0, 1] (ambient occlusion, obscurance), sampled trilinearly.
         composition: compositor name (see :data:`volshade.composition.COMPOSITORS`).
-        background: RGB colour behind the volume.
+        background: RGB colour behind the volume, in [0, 1].
         opacity_scale: optional ``(D, H, W)`` factor $f \\ge 0$, sampled trilinearly;
             each sample's reference opacity becomes $\\min(1, f \\alpha_0)$ before
             the step correction (saliency-driven modulation).
@@ -125,7 +125,8 @@ def march(
 
     Raises:
         ValueError / TypeError: bad shapes, dtypes, options or sizes; NaN or inf
-            in ``volume``, ``ambient`` or ``background``, a negative
+            in ``volume``, ``ambient`` or ``background``, ``background`` outside
+            [0, 1], a negative
             ``opacity_scale``, transfer-function control values out of order or
             outside [0, 1], or ``phong`` or ``importance`` values outside their
             domains (raised when the data is seen: at run time for traced values).
@@ -200,7 +201,9 @@ def medium(
     if background.shape != (3,):
         raise ValueError(f"{where}: `background` must be an RGB triple, shape (3,), got "
                          f"{background.shape}.")
-    background = _checks.finite(background, "background", where)
+    # (a PNG would clip a colour outside [0, 1] silently; the CLI refuses it as well)
+    background = _checks.finite(background, "background", where, unit_range=True,
+                                hint="(an RGB colour)")
     measured = composition == "importance"
     phong = Phong() if phong is None else phong
     if shader.needs_gradient:  # the lit shaders, which read the Phong coefficients

@@ -190,7 +190,7 @@ class Scene(eqx.Module):
         importance: :class:`~volshade.importance.Importance` weights, for
             ``composition="importance"``.
         focus: optional :class:`~volshade.importance.Focus` (focus plus context).
-        background: ``(3,)`` RGB background colour.
+        background: ``(3,)`` RGB background colour, in [0, 1].
         clip: optional clip shape (:mod:`volshade.clip`): the voxels inside it are
             removed from the render (their opacity scaled by 0, sampled
             trilinearly) and from the opacity ``ambient="lao"`` sees. With a moving
@@ -217,7 +217,8 @@ class Scene(eqx.Module):
             ``importance.global_weight`` (with ``focus``) or ``phong.ambient`` (with
             ``shading="obscurance"``) set to other than its default; ``clip`` with
             ``ambient="feature_ao"`` or ``"obscurance"`` or ``modulation="saliency"``;
-            ``background`` not of shape ``(3,)``.
+            ``background`` not of shape ``(3,)`` or outside [0, 1] (traced: when
+            rendered).
         TypeError: non-numeric ``volume``, ``ambient_volume`` (complex included) or
             ``background`` (a bool ``background``);
             ``step`` or ``spacing`` not numbers, or traced (they are static);
@@ -346,6 +347,9 @@ class Scene(eqx.Module):
         if jnp.shape(self.background) != (3,):
             raise ValueError(f"{_WHERE}: `background` must be an RGB triple, "
                              f"got shape {jnp.shape(self.background)}.")
+        (outside,) = _checks._value_flags(self.background, finite=False, unit_range=True)
+        _checks.refuse(self, [(outside, "`background` must lie in [0, 1] (an RGB colour).")],
+                       _WHERE, traced=False)  # traced: where the render uses it
 
     def _unread_leaves(self) -> dict[str, str]:
         """Leaves of the effect parameters that this scene's other settings leave unread,
