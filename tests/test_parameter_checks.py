@@ -320,6 +320,19 @@ def test_obscurance_shading_input_errors():
     # per-sample light directions that broadcast are fine
     out = vs.obscurance_shading(normal, jnp.ones((5, 3)), jnp.ones((1, 3)), obs)
     assert out.shape == (5,)
+    # negative light and obscurances outside [0, 1] (known or traced) are refused
+    for name in ("k_d", "k_s"):
+        with pytest.raises(ValueError, match=f"`{name}` must be >= 0"):
+            vs.obscurance_shading(normal, jnp.ones(3), jnp.ones(3), obs, **{name: -1.0})
+        with pytest.raises(Exception, match=f"`{name}` must be >= 0"):
+            jax.block_until_ready(jax.jit(lambda k, name=name: vs.obscurance_shading(
+                normal, jnp.ones(3), jnp.ones(3), obs, **{name: k}))(-0.5))
+    for bad in (1.5 * obs, -obs, jnp.ones((5, 3)).at[2, 1].set(2.0)):
+        with pytest.raises(ValueError, match=r"`obscurance` must lie in \[0, 1\]"):
+            vs.obscurance_shading(normal, jnp.ones(3), jnp.ones(3), bad)
+    with pytest.raises(Exception, match=r"`obscurance` must lie in \[0, 1\]"):
+        jax.block_until_ready(jax.jit(lambda o: vs.obscurance_shading(
+            normal, jnp.ones(3), jnp.ones(3), o))(1.5 * obs))
 
 
 def test_saliency_errors_name_saliency_and_the_argument():
@@ -346,6 +359,17 @@ def test_saliency_errors_name_saliency_and_the_argument():
         opacity_factor(DENSITY, threshold=jnp.array([0.1, 0.2]))
     with pytest.raises(ValueError, match="projected_area: `level` must be a scalar"):
         vs.projected_area(DENSITY, icosphere(0), level=jnp.array([0.1, 0.2]))
+    # saliency lies in [0, 1]: a threshold above 1 would make every voxel transparent
+    level = r"`threshold` must be a saliency level in \[0, 1\]"
+    for t in (1.5, -0.1):
+        with pytest.raises(ValueError, match="modulate_opacity: " + level):
+            vs.modulate_opacity(DENSITY, DENSITY, threshold=t)
+        with pytest.raises(ValueError, match="SaliencyModulation: " + level):
+            vs.SaliencyModulation(threshold=t)
+        with pytest.raises(Exception, match="opacity_factor: " + level):
+            jax.block_until_ready(jax.jit(lambda t: opacity_factor(DENSITY, threshold=t))(t))
+    for t in (0.0, 1.0):
+        assert np.isfinite(vs.modulate_opacity(DENSITY, DENSITY, threshold=t)).all()
 
 
 def test_scene_saliency_modulation_uses_the_scene_spacing():

@@ -370,7 +370,10 @@ def clip_opacity(alpha: Float[Array, "D H W"], clip: Clip) -> Float[Array, "D H 
     """``alpha`` with the voxels ``clip`` removes set to 0 (same dtype).
 
     Args:
-        alpha: ``(D, H, W)`` opacities (NaN or inf is refused).
+        alpha: ``(D, H, W)`` opacities (NaN or inf is refused). The values are only
+            kept or zeroed, so any finite volume works (an intensity volume too);
+            :func:`~volshade.lao.lao` and :func:`~volshade.cao.contextual_ao` refuse
+            opacities outside [0, 1] when they read the result.
         clip: a clip shape (:class:`SphereClip`, :class:`BoxClip`,
             :class:`TorusClip`, :class:`HalfSpaceClip`).
 

@@ -744,8 +744,8 @@ def obscurance_shading(
         light: ``(3,)`` or ``(..., 3)`` direction towards the light.
         view: ``(3,)`` or ``(..., 3)`` direction towards the viewer.
         obscurance: ``(...)`` grey or ``(..., 3)`` RGB obscurance, in [0, 1].
-        k_d: diffuse coefficient.
-        k_s: specular coefficient.
+        k_d: diffuse coefficient (>= 0).
+        k_s: specular coefficient (>= 0).
         shininess: Phong exponent $n$ (> 0).
         two_sided: light both sides of the surface (static; default ``False``, the
             paper's form).
@@ -755,11 +755,12 @@ def obscurance_shading(
 
     Raises:
         ValueError: vectors whose last axis is not 3 or that do not broadcast against
-            ``normal``; non-scalar coefficients; a concrete ``shininess <= 0``.
+            ``normal``; non-scalar coefficients.
         TypeError: ``two_sided`` not True or False, non-numeric inputs.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
             NaN or inf in ``normal``, ``light``, ``view``, ``obscurance`` or the
-            coefficients; a traced ``shininess <= 0``.
+            coefficients; ``obscurance`` outside [0, 1]; ``k_d < 0``, ``k_s < 0``,
+            ``shininess <= 0``.
 
     References:
         Ruiz et al. 2008, eq. (5).
@@ -783,7 +784,8 @@ def obscurance_shading(
         vectors[name] = _checks.finite(vec, name, where)
     light, view = vectors["light"], vectors["view"]
     obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
-                                "obscurance", where).astype(dtype)
+                                "obscurance", where, unit_range=True,
+                                hint="(an obscurance: see `threshold`)").astype(dtype)
     batch = normal.shape[:-1]
     if obscurance.shape not in (batch, (*batch, 3)):
         raise ValueError(f"{where}: `obscurance` must have shape {batch} (grey) or "
@@ -793,6 +795,8 @@ def obscurance_shading(
     xp, *values = _checks.for_check(*coefficients.values())
     known = dict(zip(coefficients, values, strict=True))
     problems = [(~xp.isfinite(v), f"`{name}` contains NaN or inf.") for name, v in known.items()]
+    problems += [(known[name] < 0, f"`{name}` must be >= 0 (a negative coefficient "
+                                   f"gives negative light).") for name in ("k_d", "k_s")]
     problems.append((~(known["shininess"] > 0), "`shininess` must be > 0."))
     two_sided = _checks.flag(two_sided, "two_sided", where)
     # checked on the result: a check on a coefficient would be folded away with its term

@@ -435,8 +435,8 @@ def modulate_opacity(
     Args:
         opacity: ``(D, H, W)`` opacities in [0, 1].
         saliency: ``(D, H, W)`` saliency in [0, 1] (:func:`saliency`).
-        threshold: saliency below which voxels become transparent (0.2 in the paper);
-            dynamic.
+        threshold: saliency below which voxels become transparent, in [0, 1] (0.2 in
+            the paper); dynamic.
         multiply: multiply the opacity by the saliency.
         boost_top: ``None`` (no boost) or a fraction in (0, 1].
 
@@ -447,8 +447,8 @@ def modulate_opacity(
         ValueError: shapes differ, ``boost_top`` outside (0, 1], non-scalar ``threshold``.
         TypeError: ``multiply`` not a bool, a traced ``boost_top``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
-            ``opacity`` or ``saliency`` outside [0, 1], NaN/inf in either volume or in
-            ``threshold``.
+            ``opacity``, ``saliency`` or ``threshold`` outside [0, 1], NaN/inf in
+            either volume or in ``threshold``.
 
     Example:
         >>> a = jnp.full((1, 1, 3), 0.5)
@@ -499,10 +499,18 @@ def _opacity_factor(saliency, threshold, multiply, boost_top, where: str, *,
     multiply = _checks.flag(multiply, "multiply", where)
     threshold = _checks.scalar(threshold, "threshold", where)
     xp, known = _checks.for_check(threshold)
-    threshold = _checks.refuse(threshold.astype(saliency.dtype), [
-        (~xp.isfinite(known), "`threshold` must be a finite saliency level (0.2 in the "
-                              "paper).")], where)
+    threshold = _checks.refuse(threshold.astype(saliency.dtype),
+                               _threshold_problems(xp, known), where)
     return _modulated(saliency, threshold, multiply, boost_top, opacity)
+
+
+def _threshold_problems(xp, threshold) -> list[tuple[Array, str]]:
+    """``(is_bad, message)`` for a saliency threshold: finite and in [0, 1], where the
+    saliency lies (above 1 every voxel would become transparent)."""
+    return [(~xp.isfinite(threshold), "`threshold` must be a finite saliency level (0.2 "
+                                      "in the paper)."),
+            ((threshold < 0) | (threshold > 1), "`threshold` must be a saliency level in "
+                                                "[0, 1] (0.2 in the paper).")]
 
 
 @functools.partial(jax.jit, static_argnums=(2, 3))
@@ -545,7 +553,8 @@ class SaliencyModulation(eqx.Module):
     at the threshold, so its derivative there is 0 almost everywhere).
 
     Attributes:
-        threshold: saliency below which voxels become transparent (default 0.2).
+        threshold: saliency below which voxels become transparent, in [0, 1]
+            (default 0.2).
         d_max: obscurance distance in voxels (default 32).
         rho: the obscurance's rho: a :data:`volshade.obscurance.RHO_FUNCTIONS` name
             (default ``"sqrt"``) or a callable ``rho(d, d_max)``, as for
@@ -562,7 +571,7 @@ class SaliencyModulation(eqx.Module):
             its gradient, the saliency, takes it up.
 
     Raises:
-        ValueError / TypeError: a non-finite ``threshold``, a bad ``d_max``, an
+        ValueError / TypeError: a ``threshold`` not in [0, 1], a bad ``d_max``, an
             unknown ``rho``, a ``level`` outside 0-4, a ``size`` other than 3 or 5, a
             ``multiply`` that is not a bool, a ``boost_top`` outside (0, 1], a
             ``smoothing`` that is not a finite number >= 0.
@@ -590,9 +599,7 @@ class SaliencyModulation(eqx.Module):
         threshold, d_max = self.threshold, self.d_max
         # values are checked here when known (built eagerly; leaves may carry a batch
         # axis for vmap); traced ones where they are used
-        _checks.refuse(threshold, [(~jnp.isfinite(threshold),
-                                    "`threshold` must be a finite saliency level.")],
-                       where, traced=False)
+        _checks.refuse(threshold, _threshold_problems(jnp, threshold), where, traced=False)
         _checks.refuse(d_max, _d_max_problems(d_max), where, traced=False)
 
     def _without_gradient(self) -> dict[str, str]:
