@@ -187,6 +187,17 @@ def test_nested_lists_become_arrays():
         jnp.asarray(0.5)), TypeError, "volshade.Scene: `step` is static .* cannot be traced"),
     (lambda: vs.Scene(volume=VOL, transfer=TF, background=(0.0, -0.5, 0.0)), ValueError,
      r"volshade.Scene: `background` must lie in \[0, 1\] \(an RGB colour\)"),
+    # eqx.tree_at skips the converters: a list failed inside the render, unnamed
+    (lambda: vs.render(eqx.tree_at(lambda s: s.transfer.opacities, VOL_SCENE, [0.0] * 9), CAM),
+     TypeError, r"volshade.render: `scene.transfer.opacities` must be an array, got a list"),
+    (lambda: vs.render(eqx.tree_at(
+        lambda s: s.feature_ao.features[1].opacities,
+        vs.Scene(volume=VOL, transfer=TF, ambient="feature_ao",
+                 feature_ao=vs.FeatureAmbientOcclusion([vs.IntervalFeature(0.2, 0.6), TF])),
+        [0.0] * 9), CAM), TypeError,
+     r"`scene.feature_ao.features\[1\].opacities` must be an array, got a list"),
+    (lambda: vs.render(VOL_SCENE, [CAM, eqx.tree_at(lambda c: c.eye, CAM, (0.0, 1.0, 2.0))]),
+     TypeError, r"volshade.render: `camera\[1\].eye` must be an array, got a tuple"),
     (lambda: vs.projected_area(DENSITY, None), TypeError,
      r"projected_area: `viewpoints` must be an \(L, 3\) array of directions, got None"),
     (lambda: vs.render(vs.Scene(volume=VOL, transfer=TF, shading="phong",

@@ -381,6 +381,24 @@ def _minus_inf_allowed(tree, prefix: str) -> set[str]:
             for path, node in nodes if declares(node) for field in node.may_be_minus_inf}
 
 
+def _no_containers(tree: Any, name: str) -> None:
+    """Refuse a list, tuple or dict of numbers or arrays in place of an array leaf (set
+    with ``eqx.tree_at``, which skips the modules' converters): it would fail inside
+    the render, unnamed. Sequences of modules (feature AO's features) are looked into."""
+    nodes, _ = jax.tree_util.tree_flatten_with_path(
+        tree, is_leaf=lambda node: node is not tree and isinstance(node, list | tuple | dict))
+    for path, node in nodes:
+        if not isinstance(node, list | tuple | dict):
+            continue
+        children = list(node.items()) if isinstance(node, dict) else list(enumerate(node))
+        if not all(isinstance(child, eqx.Module) for _, child in children):
+            raise TypeError(f"volshade.render: `{name}{jax.tree_util.keystr(path)}` must be "
+                            f"an array, got a {type(node).__name__}; pass "
+                            f"jnp.asarray(...) (eqx.tree_at does not convert it).")
+        for key, child in children:
+            _no_containers(child, f"{name}{jax.tree_util.keystr(path)}[{key!r}]")
+
+
 def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
     """Refuse NaN/inf in any floating-point leaf of the scene or camera(s) (naming it), so a
     bad parameter raises instead of rendering a NaN image. The volume has its own check;
@@ -470,7 +488,8 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
 
     Raises:
         TypeError: ``scene`` is not a :class:`Scene`; ``camera`` is not a camera or a
-            non-empty list or tuple of them.
+            non-empty list or tuple of them; a list, tuple or dict in place of an array
+            leaf (set with ``eqx.tree_at``, named by its path).
         ValueError / EquinoxRuntimeError: NaN or inf in a scene or camera parameter
             (named), and the checks of the effects and of
             :func:`~volshade.render.march`.
@@ -489,6 +508,9 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
                         f"{type(scene).__name__}; wrap a volume as "
                         f"volshade.Scene(volume=..., transfer=...).")
     _check_cameras(camera)
+    _no_containers(scene, "scene")
+    for i, cam in enumerate([camera] if isinstance(camera, Camera) else camera):
+        _no_containers(cam, "camera" if isinstance(camera, Camera) else f"camera[{i}]")
     scene, camera = _finite_parameters(scene, camera)
     # the volume first, so a NaN in it is named as the render's, not as the first effect's
     scene = eqx.tree_at(lambda s: s.volume, scene,
