@@ -740,11 +740,15 @@ def lao(
             (normalised here; e.g. ``volshade.directions.icosphere(1)``), or an int
             ``L`` meaning ``volshade.directions.fibonacci(L)``. Static configuration:
             not differentiated (``lao`` stops their gradient).
-        radius: sphere radius $R$ in voxels; dynamic and differentiable.
+        radius: sphere radius $R$ in voxels; dynamic and differentiable (in reverse
+            mode, ``jax.grad``/``jax.vjp``/``jax.jacrev``: the gradient is a custom
+            VJP, so ``jax.jvp``, ``jax.jacfwd`` and ``jax.hessian`` fail, here and in
+            renders with LAO).
         offset: initial offset $a$ in voxels, ``0 <= offset < radius``; dynamic and
             differentiable.
         samples: $M$, the number of segments of the shell (static, ``>= 1``);
-            ``M - 1`` opacity samples are taken per ray.
+            ``M - 1`` opacity samples are taken per ray, so ``samples=1`` takes none
+            and gives AO = 1 everywhere.
         weights: ``(L,)`` non-negative directional weights $w_l$ (not all zero),
             normalised to sum to 1; ``None`` means equal weights (the plain mean).
             Differentiable.
