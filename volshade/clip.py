@@ -293,6 +293,9 @@ def _within_reach(distances: Array, radius, clip: Clip) -> Array:
 
 
 def _shape_of(shape, where: str) -> tuple[int, int, int]:
+    if np.ndim(shape) > 1:  # the volume itself (its repr would fill the screen)
+        raise TypeError(f"{where}: `shape` must be 3 positive ints (D, H, W), got an array of "
+                        f"shape {np.shape(shape)}; pass `volume.shape`.")
     try:
         shape = tuple(shape)
     except TypeError as err:
@@ -300,7 +303,8 @@ def _shape_of(shape, where: str) -> tuple[int, int, int]:
                         f"`volume.shape`, got {shape!r:.80}.") from err
     if len(shape) != 3 or not all(isinstance(n, int | np.integer) and not isinstance(n, bool)
                                   and n >= 1 for n in shape):
-        raise ValueError(f"{where}: `shape` must be 3 positive ints (D, H, W), got {shape}.")
+        raise ValueError(f"{where}: `shape` must be 3 positive ints (D, H, W), got "
+                         f"{shape!r:.80}.")
     return tuple(int(n) for n in shape)
 
 
