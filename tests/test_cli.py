@@ -121,20 +121,26 @@ def test_ambient_options_in_mm_and_the_defaults_for_real_data(tmp_path, monkeypa
     nib.save(nib.Nifti1Image(volume, np.diag([2.0, 2.0, 2.0, 1.0])), path)
     out = ["--out", str(tmp_path / "x.png"), "--image", "8"]
     # real data: smoothed by one voxel edge and displayed with high 0.6 unless told
+    def values(params, *names):
+        return [float(getattr(params, name)) for name in names]
+
     params = _scene_of([str(path), *out, "--ambient", "obscurance"], monkeypatch).obscurance
-    assert (params.smoothing, float(params.high), float(params.d_max)) == (1.0, 0.6, 16.0)
+    np.testing.assert_allclose(values(params, "smoothing", "high", "d_max"), [1.0, 0.6, 16.0],
+                               rtol=1e-7)
     params = _scene_of([str(path), *out, "--ambient", "obscurance", "--smoothing", "0",
                         "--high", "1", "--d-max", "8", "--low", "0.1", "--colour-bleeding"],
                        monkeypatch).obscurance
-    assert (params.smoothing, float(params.high), float(params.d_max), float(params.low),
-            params.color_bleeding) == (0.0, 1.0, 4.0, 0.1, True)
+    np.testing.assert_allclose(values(params, "smoothing", "high", "d_max", "low"),
+                               [0.0, 1.0, 4.0, 0.1], rtol=1e-7)
+    assert params.color_bleeding is True
     lao = _scene_of([str(path), *out, "--ambient", "lao", "--radius", "6", "--offset", "1"],
                     monkeypatch).lao
-    assert (float(lao.radius), float(lao.offset)) == (3.0, 0.5)
+    np.testing.assert_allclose(values(lao, "radius", "offset"), [3.0, 0.5], rtol=1e-7)
     # phantoms (1 mm voxels): the ObscuranceParams defaults
     params = _scene_of(["shells", *out, "--size", "8", "--ambient", "obscurance"],
                        monkeypatch).obscurance
-    assert (params.smoothing, float(params.high), float(params.d_max)) == (0.0, 1.0, 32.0)
+    np.testing.assert_allclose(values(params, "smoothing", "high", "d_max"), [0.0, 1.0, 32.0],
+                               rtol=1e-7)
 
 
 def test_options_that_do_not_apply_are_refused(tmp_path, capsys):
@@ -146,16 +152,32 @@ def test_options_that_do_not_apply_are_refused(tmp_path, capsys):
                                       "--ambient none"),
         (["shells", "--ambient", "lao", "--d-max", "3", "--colour-bleeding"],
          "--d-max and --colour-bleeding are read only with --ambient obscurance"),
+        # an explicit 0 is given too (0.0 == False)
+        (["shells", "--low", "0"], "--low is read only with --ambient obscurance"),
+        (["shells", "--ambient", "lao", "--smoothing", "0.0"], "--smoothing is read only"),
+        (["shells", "--offset", "0"], "--offset is read only with --ambient lao"),
         (["shells", "--ambient", "lao", "--radius", "1", "--offset", "2"],
-         "--radius and --offset need radius > offset >= 0 (mm), got 1 and 2"),
+         "--radius and --offset must be finite numbers with radius > offset >= 0 (mm), "
+         "got 1 and 2"),
+        (["shells", "--ambient", "lao", "--radius", "inf"], "got inf and 1"),
         (["shells", "--ambient", "obscurance", "--smoothing", "-1"],
-         "--d-max must be > 0 and --smoothing >= 0 (mm), got 32 and -1"),
+         "--smoothing must be a finite number >= 0 (mm), got -1"),
+        (["shells", "--ambient", "obscurance", "--d-max", "inf"],
+         "--d-max must be a finite number > 0 (mm), got inf"),
         (["shells", "--ambient", "obscurance", "--low", "0.7", "--high", "0.2"],
-         "`low` must be <= `high`"),
+         "--low must be <= --high, got 0.7 and 0.2."),
+        (["shells", "--ambient", "obscurance", "--low", "1.5"],
+         "--low must be <= --high, got 1.5 and 1 (the default for phantoms)"),
     ]:
         assert cli.main(["render", *argv, *out]) == 2
         err = capsys.readouterr().err
         assert err.startswith("volshade: error: ") and message in err, err
-    bogus = tmp_path / "x.nii.gz"  # (the check comes before the file is read)
+    # (the checks come before the file is read)
+    bogus = tmp_path / "x.nii.gz"
     assert cli.main(["render", str(bogus), *out, "--size", "16"]) == 2
     assert "--size sets a phantom's edge" in capsys.readouterr().err
+    assert cli.main(["render", str(bogus), *out, "--radius", "3"]) == 2
+    assert "--radius is read only with --ambient lao" in capsys.readouterr().err
+    assert cli.main(["render", str(bogus), *out, "--ambient", "obscurance", "--low",
+                     "0.7"]) == 2
+    assert "got 0.7 and 0.6 (the default for real data)" in capsys.readouterr().err

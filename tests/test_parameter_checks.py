@@ -1,6 +1,8 @@
 """Parameter modules and entry points: float leaves that get gradients, and bad input
 refused with a message that names the argument (found by a new-user walkthrough)."""
 
+import re
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -10,6 +12,7 @@ import pytest
 import volshade as vs
 from volshade import scene as scene_module
 from volshade.directions import icosphere, icosphere_points
+from volshade.render import march
 from volshade.saliency import opacity_factor
 
 VOL = vs.data.phantom("shells", shape=12)
@@ -190,17 +193,6 @@ def test_nested_lists_become_arrays():
         jnp.asarray(0.5)), TypeError, "volshade.Scene: `step` is static .* cannot be traced"),
     (lambda: vs.Scene(volume=VOL, transfer=TF, background=(0.0, -0.5, 0.0)), ValueError,
      r"volshade.Scene: `background` must lie in \[0, 1\] \(an RGB colour\)"),
-    # eqx.tree_at skips the converters: a list failed inside the render, unnamed
-    (lambda: vs.render(eqx.tree_at(lambda s: s.transfer.opacities, VOL_SCENE, [0.0] * 9), CAM),
-     TypeError, r"volshade.render: `scene.transfer.opacities` must be an array, got a list"),
-    (lambda: vs.render(eqx.tree_at(
-        lambda s: s.feature_ao.features[1].opacities,
-        vs.Scene(volume=VOL, transfer=TF, ambient="feature_ao",
-                 feature_ao=vs.FeatureAmbientOcclusion([vs.IntervalFeature(0.2, 0.6), TF])),
-        [0.0] * 9), CAM), TypeError,
-     r"`scene.feature_ao.features\[1\].opacities` must be an array, got a list"),
-    (lambda: vs.render(VOL_SCENE, [CAM, eqx.tree_at(lambda c: c.eye, CAM, (0.0, 1.0, 2.0))]),
-     TypeError, r"volshade.render: `camera\[1\].eye` must be an array, got a tuple"),
     (lambda: vs.projected_area(DENSITY, None), TypeError,
      r"projected_area: `viewpoints` must be an \(L, 3\) array of directions, got None"),
     (lambda: vs.render(vs.Scene(volume=VOL, transfer=TF, shading="phong",
@@ -277,9 +269,14 @@ def test_traced_values_out_of_range_are_refused_by_the_renderer():
         jax.block_until_ready(jax.jit(render)(-1.0, 4.0))
     with pytest.raises(Exception, match="volshade.Importance: `darkening` must be >= 0"):
         jax.block_until_ready(jax.jit(render)(0.3, -10.0))
-    # (a PNG would clip it; the CLI refuses it too)
-    with pytest.raises(Exception, match=r"volshade.render: `background` must lie in \[0, 1\]"):
-        jax.block_until_ready(jax.jit(render)(0.3, 4.0, 1.5))
+    # a background set by a fit is checked for NaN only: the fit may converge to 0 or 1
+    # with a rounding error either side, and its scene must render (traced or not)
+    assert np.all(np.isfinite(jax.jit(render)(0.3, 4.0, -1e-9)))
+    fitted = eqx.tree_at(lambda s: s.background, VOL_SCENE, jnp.asarray([0.7, -3e-10, 1.0]))
+    assert np.all(np.isfinite(vs.render(fitted, CAM)))
+    # a known one passed to march is refused, as by Scene (a PNG would clip it)
+    with pytest.raises(ValueError, match=r"volshade.render: `background` must lie in \[0, 1\]"):
+        march(VOL, TF, CAM, background=(0.0, 1.5, 0.0))
 
 
 def test_from_view_refuses_zero_and_nan_directions():
@@ -429,3 +426,26 @@ def test_static_steps_given_as_arrays_are_kept_as_python_floats(value, recwarn):
         vs.render(scene, CAM),
         vs.render(vs.Scene(volume=VOL, transfer=vs.TransferFunction(
             TF.points, TF.colors, TF.opacities, step0=1.0), step=0.5), CAM), atol=1e-12)
+
+
+def test_lists_set_with_tree_at_become_arrays_and_dicts_are_refused_by_path():
+    # eqx.tree_at skips the modules' converters: a list of opacities failed inside the
+    # render ('list' object has no attribute 'astype'); it is made an array, as built
+    listed = eqx.tree_at(lambda s: s.transfer.opacities, VOL_SCENE,
+                         np.asarray(TF.opacities).tolist())
+    moved = [CAM, eqx.tree_at(lambda c: c.eye, CAM, tuple(np.asarray(CAM.eye).tolist()))]
+    np.testing.assert_array_equal(vs.render(listed, CAM), vs.render(VOL_SCENE, CAM))
+    for got, want in zip(vs.render(VOL_SCENE, moved), vs.render(VOL_SCENE, [CAM, CAM]),
+                         strict=True):
+        np.testing.assert_array_equal(got, want)
+    features = vs.Scene(volume=VOL, transfer=TF, ambient="feature_ao",
+                        feature_ao=vs.FeatureAmbientOcclusion([vs.IntervalFeature(0.2, 0.6),
+                                                               TF]))
+    for where, value, name in [
+            (lambda s: s.background, {"r": 0.0}, "scene.background"),
+            (lambda s: s.feature_ao.features[1].opacities, [[0.0], [0.0, 1.0]],
+             "scene.feature_ao.features[1].opacities")]:
+        scene = features if "feature" in name else VOL_SCENE
+        with pytest.raises(TypeError, match=re.escape(f"volshade.render: `{name}` must be an "
+                                                      f"array, got a")):
+            vs.render(eqx.tree_at(where, scene, value), CAM)

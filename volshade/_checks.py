@@ -200,11 +200,13 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
     return refuse(arr, checks, where)
 
 
-def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT) -> Array:
-    """``arr``, refused (:func:`refuse`) when it holds values outside [0, 1] (NaN
-    passes: :func:`finite` refuses it); ``hint`` follows "must lie in [0, 1]"."""
+def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT,
+                  traced: bool = True) -> Array:
+    """``arr``, refused (:func:`refuse`, ``traced`` as there) when it holds values outside
+    [0, 1] (NaN passes: :func:`finite` refuses it); ``hint`` follows "must lie in [0, 1]"."""
     (outside,) = _value_flags(arr, finite=False, unit_range=True)
-    return refuse(arr, [(outside, f"`{name}` must lie in [0, 1] {hint}.")], where)
+    return refuse(arr, [(outside, f"`{name}` must lie in [0, 1] {hint}.")], where,
+                  traced=traced)
 
 
 def _value_flags(arr: Any, *, finite: bool, unit_range: bool) -> list:

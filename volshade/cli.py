@@ -8,13 +8,16 @@ VOLUME is a phantom name (shells, corner, orange, bucky, noise), a real-data
 name (colin27, mni152, mni152_gm, mni152_wm: found via VOLSHADE_DATA) or a path to a
 NIfTI file. The transfer function defaults to the volume's own preset (shells,
 corner, head for colin27; grey otherwise), and the corner phantom's labels are
-classified before interpolation. Lengths are in mm (a phantom's voxel is 1 mm).
+classified before interpolation. Lengths are in mm (a phantom's voxel is 1 mm),
+converted to voxels of the smallest voxel edge for LAO and obscurances, which work in
+voxels: on anisotropic data their reach is longer along the coarser axes.
 Obscurances of real data are smoothed by one voxel and displayed with high 0.6 by
 default: unsmoothed, the strict occlusion test on measured intensities draws the
 voxel grid on the skin as striations, and surfaces come out dark.
 """
 
 import argparse
+import math
 import pathlib
 import sys
 import time
@@ -61,9 +64,9 @@ def _is_measured(spec: str) -> bool:
     raise ValueError(f"unknown volume {spec!r}; use one of {valid} or a .nii/.nii.gz path.")
 
 
-def _load_volume(spec: str, downsample: int | None, size: int | None):
+def _load_volume(spec: str, downsample: int | None, size: int | None, measured: bool):
     # an option that does not apply is refused, not ignored
-    if _is_measured(spec):
+    if measured:
         if size is not None:
             raise ValueError(f"--size sets a phantom's edge; {spec!r} is real data (use "
                              f"--downsample).")
@@ -80,12 +83,13 @@ _AMBIENT_OPTIONS = {"lao": ("radius", "offset"),
                     "obscurance": ("d_max", "smoothing", "low", "high", "colour_bleeding")}
 
 
-def _ambient_params(args: argparse.Namespace, voxel: float, measured: bool) -> dict:
-    """The Scene's ``lao`` or ``obscurance`` parameters from the CLI's options (mm ->
-    voxels of the loaded volume); the options of another ambient term are refused."""
+def _ambient_options(args: argparse.Namespace, measured: bool) -> dict:
+    """The options of the ambient term, in mm, with their defaults (``smoothing`` None:
+    one voxel edge), checked before the volume is loaded; the options of another ambient
+    term are refused."""
     for ambient, names in _AMBIENT_OPTIONS.items():
         given = [f"--{n.replace('_', '-')}" for n in names
-                 if getattr(args, n) not in (None, False)]
+                 if getattr(args, n) is not None and getattr(args, n) is not False]
         if given and args.ambient != ambient:
             raise ValueError(f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} "
                              f"read only with --ambient {ambient}, got --ambient "
@@ -93,20 +97,42 @@ def _ambient_params(args: argparse.Namespace, voxel: float, measured: bool) -> d
     if args.ambient == "lao":
         radius = 16.0 if args.radius is None else args.radius
         offset = 1.0 if args.offset is None else args.offset
-        if not radius > offset >= 0:  # (here, where the values are still in mm)
-            raise ValueError(f"--radius and --offset need radius > offset >= 0 (mm), got "
-                             f"{radius:g} and {offset:g}.")
-        return {"lao": LocalAmbientOcclusion(radius / voxel, offset=offset / voxel)}
+        if not (math.isfinite(radius) and radius > offset >= 0):
+            raise ValueError(f"--radius and --offset must be finite numbers with radius > "
+                             f"offset >= 0 (mm), got {radius:g} and {offset:g}.")
+        return {"radius": radius, "offset": offset}
     if args.ambient == "obscurance":
         d_max = 32.0 if args.d_max is None else args.d_max
-        smoothing = args.smoothing if args.smoothing is not None else voxel if measured else 0
-        if not (d_max > 0 and smoothing >= 0):
-            raise ValueError(f"--d-max must be > 0 and --smoothing >= 0 (mm), got {d_max:g} "
-                             f"and {smoothing:g}.")
-        high = args.high if args.high is not None else 0.6 if measured else 1.0
+        if not (math.isfinite(d_max) and d_max > 0):
+            raise ValueError(f"--d-max must be a finite number > 0 (mm), got {d_max:g}.")
+        if args.smoothing is not None and not (math.isfinite(args.smoothing)
+                                               and args.smoothing >= 0):
+            raise ValueError(f"--smoothing must be a finite number >= 0 (mm), got "
+                             f"{args.smoothing:g}.")
+        default_high = 0.6 if measured else 1.0
+        low = 0.0 if args.low is None else args.low
+        high = default_high if args.high is None else args.high
+        if not low <= high:
+            said = "" if args.high is not None else (
+                f" (the default for {'real data' if measured else 'phantoms'})")
+            raise ValueError(f"--low must be <= --high, got {low:g} and {high:g}{said}.")
+        return {"d_max": d_max, "smoothing": args.smoothing, "low": low, "high": high,
+                "color_bleeding": args.colour_bleeding}
+    return {}
+
+
+def _ambient_params(ambient: str, options: dict, voxel: float, measured: bool) -> dict:
+    """The Scene's ``lao`` or ``obscurance`` from :func:`_ambient_options`, lengths in
+    voxels of the smallest edge ``voxel`` (mm)."""
+    if ambient == "lao":
+        return {"lao": LocalAmbientOcclusion(options["radius"] / voxel,
+                                             offset=options["offset"] / voxel)}
+    if ambient == "obscurance":
+        smoothing = options["smoothing"]
+        smoothing = (voxel if measured else 0.0) if smoothing is None else smoothing
         return {"obscurance": ObscuranceParams(
-            d_max=d_max / voxel, low=0.0 if args.low is None else args.low, high=high,
-            smoothing=smoothing / voxel, color_bleeding=args.colour_bleeding)}
+            d_max=options["d_max"] / voxel, low=options["low"], high=options["high"],
+            smoothing=smoothing / voxel, color_bleeding=options["color_bleeding"])}
     return {}
 
 
@@ -193,13 +219,16 @@ def render_command(args: argparse.Namespace) -> int:
     # found before the render, not after it
     if args.out.is_dir() or args.out.suffix.lower() != ".png":
         raise ValueError(f"--out must name a .png file, got {str(args.out)!r}.")
-    # a PNG would clip them silently (NaN is left to the scene's own check)
+    # (Scene refuses them too; here the message names the option) a PNG would clip them
+    # silently; NaN is left to the render's own check
     if any(c < 0 or c > 1 for c in args.background):
         raise ValueError(f"--background must be three numbers in [0, 1] (R G B), got "
                          f"{' '.join(f'{c:g}' for c in args.background)}.")
-    vol, spacing = _load_volume(args.volume, args.downsample, args.size)
+    measured = _is_measured(args.volume)
+    options = _ambient_options(args, measured)
+    vol, spacing = _load_volume(args.volume, args.downsample, args.size, measured)
     voxel = float(min(spacing))
-    params = _ambient_params(args, voxel, _is_measured(args.volume))
+    params = _ambient_params(args.ambient, options, voxel, measured)
     tf = transfer.preset(args.preset or _PRESETS.get(args.volume, "grey"))
     classification = args.classification or ("pre" if args.volume in _LABELS else "post")
     cam = Camera.orbit(azimuth=args.azimuth, elevation=args.elevation, distance=args.distance,

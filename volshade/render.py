@@ -91,7 +91,7 @@ def march(
         ambient: optional ``(D, H, W)`` or ``(D, H, W, 3)`` ambient factor in
             [0, 1] (ambient occlusion, obscurance), sampled trilinearly.
         composition: compositor name (see :data:`volshade.composition.COMPOSITORS`).
-        background: RGB colour behind the volume, in [0, 1].
+        background: RGB colour behind the volume, in [0, 1] (checked where known).
         opacity_scale: optional ``(D, H, W)`` factor $f \\ge 0$, sampled trilinearly;
             each sample's reference opacity becomes $\\min(1, f \\alpha_0)$ before
             the step correction (saliency-driven modulation).
@@ -125,8 +125,8 @@ def march(
 
     Raises:
         ValueError / TypeError: bad shapes, dtypes, options or sizes; NaN or inf
-            in ``volume``, ``ambient`` or ``background``, ``background`` outside
-            [0, 1], a negative
+            in ``volume``, ``ambient`` or ``background``, a known ``background``
+            outside [0, 1], a negative
             ``opacity_scale``, transfer-function control values out of order or
             outside [0, 1], or ``phong`` or ``importance`` values outside their
             domains (raised when the data is seen: at run time for traced values).
@@ -135,6 +135,11 @@ def march(
                     phong=phong, ambient=ambient, composition=composition,
                     background=background, opacity_scale=opacity_scale,
                     importance=importance, classification=classification)
+    # a PNG would clip a colour outside [0, 1] silently. Checked here and where a Scene is
+    # built, on known values (not in `medium`): a fit may converge to 0 or 1 with a
+    # rounding error either side, and its scene must still render
+    _checks.in_unit_range(shared.background, "background", "volshade.render",
+                          hint=BACKGROUND_HINT, traced=False)
     return march_view(shared, camera, focus)
 
 
@@ -159,6 +164,8 @@ class Medium(NamedTuple):
     classified: Array | None
 
 
+# what "`background` must lie in [0, 1]" is followed by (Scene says it too)
+BACKGROUND_HINT = "(an RGB colour)"
 _CLASSIFICATIONS = {"post": "classify interpolated intensities",
                     "pre": "interpolate classified voxels (opacity-weighted colours)"}
 
@@ -201,9 +208,7 @@ def medium(
     if background.shape != (3,):
         raise ValueError(f"{where}: `background` must be an RGB triple, shape (3,), got "
                          f"{background.shape}.")
-    # (a PNG would clip a colour outside [0, 1] silently; the CLI refuses it as well)
-    background = _checks.finite(background, "background", where, unit_range=True,
-                                hint="(an RGB colour)")
+    background = _checks.finite(background, "background", where)
     measured = composition == "importance"
     phong = Phong() if phong is None else phong
     if shader.needs_gradient:  # the lit shaders, which read the Phong coefficients

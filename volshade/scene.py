@@ -28,7 +28,7 @@ from .feature_ao import FeatureAmbientOcclusion
 from .importance import Focus, Importance
 from .lao import LocalAmbientOcclusion
 from .obscurance import ObscuranceParams
-from .render import _CLASSIFICATIONS, march_view, medium
+from .render import _CLASSIFICATIONS, BACKGROUND_HINT, march_view, medium
 from .saliency import SaliencyModulation
 from .shading import SHADERS, Phong
 from .transfer import TransferFunction
@@ -190,7 +190,10 @@ class Scene(eqx.Module):
         importance: :class:`~volshade.importance.Importance` weights, for
             ``composition="importance"``.
         focus: optional :class:`~volshade.importance.Focus` (focus plus context).
-        background: ``(3,)`` RGB background colour, in [0, 1].
+        background: ``(3,)`` RGB background colour, in [0, 1] (checked when the scene
+            is built from known values; a value set by a fit or ``eqx.tree_at`` is
+            checked for NaN or inf only, so a fit can converge to 0 or 1 with a
+            rounding error either side and its scene still renders).
         clip: optional clip shape (:mod:`volshade.clip`): the voxels inside it are
             removed from the render (their opacity scaled by 0, sampled
             trilinearly) and from the opacity ``ambient="lao"`` sees. With a moving
@@ -217,8 +220,7 @@ class Scene(eqx.Module):
             ``importance.global_weight`` (with ``focus``) or ``phong.ambient`` (with
             ``shading="obscurance"``) set to other than its default; ``clip`` with
             ``ambient="feature_ao"`` or ``"obscurance"`` or ``modulation="saliency"``;
-            ``background`` not of shape ``(3,)`` or outside [0, 1] (traced: when
-            rendered).
+            ``background`` not of shape ``(3,)`` or outside [0, 1].
         TypeError: non-numeric ``volume``, ``ambient_volume`` (complex included) or
             ``background`` (a bool ``background``);
             ``step`` or ``spacing`` not numbers, or traced (they are static);
@@ -347,9 +349,8 @@ class Scene(eqx.Module):
         if jnp.shape(self.background) != (3,):
             raise ValueError(f"{_WHERE}: `background` must be an RGB triple, "
                              f"got shape {jnp.shape(self.background)}.")
-        (outside,) = _checks._value_flags(self.background, finite=False, unit_range=True)
-        _checks.refuse(self, [(outside, "`background` must lie in [0, 1] (an RGB colour).")],
-                       _WHERE, traced=False)  # traced: where the render uses it
+        _checks.in_unit_range(self.background, "background", _WHERE, hint=BACKGROUND_HINT,
+                              traced=False)
 
     def _unread_leaves(self) -> dict[str, str]:
         """Leaves of the effect parameters that this scene's other settings leave unread,
@@ -381,22 +382,31 @@ def _minus_inf_allowed(tree, prefix: str) -> set[str]:
             for path, node in nodes if declares(node) for field in node.may_be_minus_inf}
 
 
-def _no_containers(tree: Any, name: str) -> None:
-    """Refuse a list, tuple or dict of numbers or arrays in place of an array leaf (set
-    with ``eqx.tree_at``, which skips the modules' converters): it would fail inside
-    the render, unnamed. Sequences of modules (feature AO's features) are looked into."""
-    nodes, _ = jax.tree_util.tree_flatten_with_path(
-        tree, is_leaf=lambda node: node is not tree and isinstance(node, list | tuple | dict))
-    for path, node in nodes:
-        if not isinstance(node, list | tuple | dict):
-            continue
-        children = list(node.items()) if isinstance(node, dict) else list(enumerate(node))
-        if not all(isinstance(child, eqx.Module) for _, child in children):
+def _containers_as_arrays(tree: Any, name: str) -> Any:
+    """``tree`` with each list or tuple of numbers or arrays in place of an array leaf (set
+    with ``eqx.tree_at``, which skips the modules' converters) made an array, as the
+    converter would have made it; what cannot be one is refused by its path (it would
+    fail inside the render, unnamed). Sequences of modules (feature AO's features) are
+    looked into."""
+    def container(node):
+        if node is tree or not isinstance(node, list | tuple | dict):
+            return False
+        children = node.values() if isinstance(node, dict) else node
+        return not all(isinstance(child, eqx.Module) for child in children)
+
+    def as_array(path, node):
+        if not container(node):
+            return node
+        try:
+            if isinstance(node, dict):
+                raise TypeError
+            return jnp.asarray(node)
+        except (TypeError, ValueError):
             raise TypeError(f"volshade.render: `{name}{jax.tree_util.keystr(path)}` must be "
-                            f"an array, got a {type(node).__name__}; pass "
-                            f"jnp.asarray(...) (eqx.tree_at does not convert it).")
-        for key, child in children:
-            _no_containers(child, f"{name}{jax.tree_util.keystr(path)}[{key!r}]")
+                            f"an array, got a {type(node).__name__} that is not one; pass "
+                            f"jnp.asarray(...).") from None
+
+    return jax.tree_util.tree_map_with_path(as_array, tree, is_leaf=container)
 
 
 def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
@@ -488,8 +498,9 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
 
     Raises:
         TypeError: ``scene`` is not a :class:`Scene`; ``camera`` is not a camera or a
-            non-empty list or tuple of them; a list, tuple or dict in place of an array
-            leaf (set with ``eqx.tree_at``, named by its path).
+            non-empty list or tuple of them; a dict, or a list or tuple that is not
+            an array, in place of an array leaf (set with ``eqx.tree_at``, named by
+            its path; lists and tuples of numbers are made arrays).
         ValueError / EquinoxRuntimeError: NaN or inf in a scene or camera parameter
             (named), and the checks of the effects and of
             :func:`~volshade.render.march`.
@@ -508,9 +519,9 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
                         f"{type(scene).__name__}; wrap a volume as "
                         f"volshade.Scene(volume=..., transfer=...).")
     _check_cameras(camera)
-    _no_containers(scene, "scene")
-    for i, cam in enumerate([camera] if isinstance(camera, Camera) else camera):
-        _no_containers(cam, "camera" if isinstance(camera, Camera) else f"camera[{i}]")
+    scene = _containers_as_arrays(scene, "scene")
+    camera = (_containers_as_arrays(camera, "camera") if isinstance(camera, Camera) else
+              [_containers_as_arrays(cam, f"camera[{i}]") for i, cam in enumerate(camera)])
     scene, camera = _finite_parameters(scene, camera)
     # the volume first, so a NaN in it is named as the render's, not as the first effect's
     scene = eqx.tree_at(lambda s: s.volume, scene,
