@@ -397,14 +397,14 @@ def _containers_as_arrays(tree: Any, name: str) -> Any:
     def as_array(path, node):
         if not container(node):
             return node
-        try:
-            if isinstance(node, dict):
-                raise TypeError
-            return jnp.asarray(node)
-        except (TypeError, ValueError):
-            raise TypeError(f"volshade.render: `{name}{jax.tree_util.keystr(path)}` must be "
-                            f"an array, got a {type(node).__name__} that is not one; pass "
-                            f"jnp.asarray(...).") from None
+        if not isinstance(node, dict):
+            try:
+                return jnp.asarray(node)
+            except (TypeError, ValueError):
+                pass  # (ragged, or not numbers)
+        raise TypeError(f"volshade.render: `{name}{jax.tree_util.keystr(path)}` must be an "
+                        f"array, got a {type(node).__name__} that is not one; pass "
+                        f"jnp.asarray(...).")
 
     return jax.tree_util.tree_map_with_path(as_array, tree, is_leaf=container)
 
