@@ -585,6 +585,12 @@ def test_errors():
         composite(c, np.where(a > 0.5, np.nan, a))
     with pytest.raises(Exception, match=r"\[0, 1\]"):
         composite(c, a + 1.0)
+    # negative light, known or traced (colours above alpha are fine: highlights)
+    with pytest.raises(ValueError, match="`colors` must be >= 0"):
+        composite(np.where(np.arange(3) == 2, -0.1, c), a)
+    with pytest.raises(Exception, match="`colors` must be >= 0"):
+        jax.block_until_ready(jax.jit(composite)(-c, a))
+    assert np.isfinite(composite(2 * c, a)).all()
     with pytest.raises(Exception, match="NaN"):
         composite(c, a, importance=np.full_like(imp, np.inf))
     with pytest.raises(Exception, match="background_importance"):

@@ -635,8 +635,9 @@ def composite(
 
     Raises:
         ValueError: mismatched shapes, ``background_importance`` without
-            ``importance``, ``unroll < 1``; NaN/inf in the inputs or alphas outside [0, 1] (traced:
-            ``equinox.EquinoxRuntimeError`` at run time).
+            ``importance``, ``unroll < 1``; NaN/inf in the inputs, alphas outside
+            [0, 1] or negative colours (traced: ``equinox.EquinoxRuntimeError`` at run
+            time).
         TypeError: non-numeric inputs.
 
     Example:
@@ -667,6 +668,10 @@ def composite(
     dtype = jnp.result_type(*arrays)
     batch = alphas.shape[:-1]
     colors = _checks.finite(colors.astype(dtype), "colors", where)
+    # (above alpha is fine: a Phong highlight makes c > 1)
+    colors = _checks.refuse(colors, [(jnp.any(colors < 0), "`colors` must be >= 0 "
+                                      "(opacity-weighted colours; light is not negative).")],
+                            where)
     alphas = _checks.finite(alphas.astype(dtype), "alphas", where, unit_range=True)
     if background is None:
         bg = jnp.zeros((*batch, 3), dtype)
