@@ -189,14 +189,17 @@ _OPACITY_HINT = ("(opacities); map it through a transfer function or `jnp.clip` 
 
 
 def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
-           hint: str = _OPACITY_HINT) -> Array:
-    """``arr``, refused (:func:`refuse`) when it holds NaN or inf, or (``unit_range``)
-    values outside [0, 1] (:func:`in_unit_range`)."""
-    flags = _value_flags(arr, finite=True, unit_range=unit_range)
-    checks = [(flags[0], f"`{name}` contains NaN or inf; clean the data (e.g. "
-                         f"`jnp.nan_to_num`) first.")]
+           non_negative: bool = False, hint: str = _OPACITY_HINT) -> Array:
+    """``arr``, refused (:func:`refuse`) when it holds NaN or inf, or values outside
+    [0, 1] (``unit_range``, :func:`in_unit_range`) or below 0 (``non_negative``);
+    ``hint`` follows "must lie in [0, 1]" or "must be >= 0"."""
+    flags = _value_flags(arr, finite=True, unit_range=unit_range, non_negative=non_negative)
+    checks = [(flags.pop(0), f"`{name}` contains NaN or inf; clean the data (e.g. "
+                             f"`jnp.nan_to_num`) first.")]
     if unit_range:
-        checks.append((flags[1], f"`{name}` must lie in [0, 1] {hint}."))
+        checks.append((flags.pop(0), f"`{name}` must lie in [0, 1] {hint}."))
+    if non_negative:
+        checks.append((flags.pop(0), f"`{name}` must be >= 0 {hint}."))
     return refuse(arr, checks, where)
 
 
@@ -209,28 +212,32 @@ def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HIN
                   traced=traced)
 
 
-def _value_flags(arr: Any, *, finite: bool, unit_range: bool) -> list:
-    """Whether ``arr`` holds NaN or inf (``finite``) and values outside [0, 1]
-    (``unit_range``; NaN is not outside), as ``bad``s for :func:`refuse`. A large
+def _value_flags(arr: Any, *, finite: bool, unit_range: bool,
+                 non_negative: bool = False) -> list:
+    """Whether ``arr`` holds NaN or inf (``finite``), values outside [0, 1]
+    (``unit_range``; NaN is not outside) and values below 0 (``non_negative``), in that
+    order, as ``bad``s for :func:`refuse`. A large
     concrete array (a volume passed to an eager call) is checked by one compiled
     program: op by op, each comparison and reduction compiled a program of its own for
     every new shape and dtype (seven for the two checks of an opacity volume)."""
     if not isinstance(arr, jax.core.Tracer) and np.size(arr) > _HOST_CHECK_SIZE:
-        flags = _compiled_value_flags(jnp.asarray(arr), finite, unit_range)
+        flags = _compiled_value_flags(jnp.asarray(arr), finite, unit_range, non_negative)
         known = concrete(flags)  # None when a trace stages the call (a closed-over volume)
         return list(flags if known is None else known)
     xp, host = for_check(arr)
-    return _flags_of(xp, host, finite, unit_range)
+    return _flags_of(xp, host, finite, unit_range, non_negative)
 
 
-def _flags_of(xp, x, finite: bool, unit_range: bool) -> list:
+def _flags_of(xp, x, finite: bool, unit_range: bool, non_negative: bool) -> list:
     return ([~xp.all(xp.isfinite(x))] if finite else []) + \
-        ([xp.any((x < 0) | (x > 1))] if unit_range else [])
+        ([xp.any((x < 0) | (x > 1))] if unit_range else []) + \
+        ([xp.any(x < 0)] if non_negative else [])
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2))
-def _compiled_value_flags(x: Array, finite: bool, unit_range: bool) -> Array:
-    return jnp.stack(_flags_of(jnp, x, finite, unit_range))
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _compiled_value_flags(x: Array, finite: bool, unit_range: bool,
+                          non_negative: bool) -> Array:
+    return jnp.stack(_flags_of(jnp, x, finite, unit_range, non_negative))
 
 
 def positive_int(value: Any, name: str, where: str, *, minimum: int = 1) -> int:

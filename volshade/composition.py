@@ -667,11 +667,9 @@ def composite(
                          f"compositing; pass `importance=` (e.g. zeros like `alphas`) too.")
     dtype = jnp.result_type(*arrays)
     batch = alphas.shape[:-1]
-    colors = _checks.finite(colors.astype(dtype), "colors", where)
     # (above alpha is fine: a Phong highlight makes c > 1)
-    colors = _checks.refuse(colors, [(jnp.any(colors < 0), "`colors` must be >= 0 "
-                                      "(opacity-weighted colours; light is not negative).")],
-                            where)
+    colors = _checks.finite(colors.astype(dtype), "colors", where, non_negative=True,
+                            hint="(opacity-weighted colours; light is not negative)")
     alphas = _checks.finite(alphas.astype(dtype), "alphas", where, unit_range=True)
     if background is None:
         bg = jnp.zeros((*batch, 3), dtype)
