@@ -176,12 +176,14 @@ def check_ndim(x: Array, ndim: int, name: str, where: str, layout: str) -> None:
 
 
 def volume(x: Any, name: str, where: str, *, unit_range: bool = False,
-           hint: str | None = None) -> Array:
+           non_negative: bool = False, hint: str | None = None) -> Array:
     """Validate a ``(D, H, W)`` volume: rank and dtype at trace time, finiteness (and
-    optionally ``[0, 1]``, ``hint`` saying how to get there) with :func:`refuse`."""
+    optionally ``[0, 1]`` or ``>= 0``, ``hint`` saying how to get there) with
+    :func:`refuse`."""
     arr = as_float_array(x, name, where)
     check_ndim(arr, 3, name, where, "(D, H, W)")
-    return finite(arr, name, where, unit_range=unit_range, hint=hint or _OPACITY_HINT)
+    return finite(arr, name, where, unit_range=unit_range, non_negative=non_negative,
+                  hint=hint or _OPACITY_HINT)
 
 
 _OPACITY_HINT = ("(opacities); map it through a transfer function or `jnp.clip` it "

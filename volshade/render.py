@@ -193,13 +193,12 @@ def medium(
                              f"{(*volume.shape, 3)}, got {ambient.shape}.")
         ambient = _checks.finite(ambient, "ambient", where)
     if opacity_scale is not None:
-        opacity_scale = _checks.volume(opacity_scale, "opacity_scale", where).astype(dtype)
+        opacity_scale = _checks.volume(opacity_scale, "opacity_scale", where,
+                                       non_negative=True, hint="(a factor on opacity)")
         if opacity_scale.shape != volume.shape:
             raise ValueError(f"{where}: `opacity_scale` must have shape {volume.shape}, "
                              f"got {opacity_scale.shape}.")
-        opacity_scale = _checks.refuse(opacity_scale, [
-            (jnp.any(opacity_scale < 0), "`opacity_scale` must be >= 0 (a factor on "
-                                         "opacity).")], where)
+        opacity_scale = opacity_scale.astype(dtype)
     if not isinstance(transfer, TransferFunction):
         raise TypeError(f"{where}: `transfer` must be a volshade.TransferFunction, got "
                         f"{type(transfer).__name__}.")
