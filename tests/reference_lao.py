@@ -5,13 +5,13 @@ sample, the points ``x + s_i l`` of all voxels are interpolated (order 1, zero
 outside), and ``I_l = sum_m (1/M) prod_{i<m} (1 - alpha_i)`` is summed term by
 term. Same sample positions as ``volshade.lao``: ``s_i = a + (i + 1/2)(R - a)/M``.
 Positions are computed in float64 so the reference is exact for any input dtype.
+``opacity_correction`` applies the step correction from its definition,
+``alpha' = 1 - (1 - alpha) ** (step / 1 voxel)``, not through the library's own helper.
 """
 
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.ndimage import map_coordinates
-
-from volshade._numerics import correct_opacity
 
 
 def lao_reference(alpha, directions, radius, offset, samples, *, weights=None,
@@ -36,7 +36,7 @@ def lao_reference(alpha, directions, radius, offset, samples, *, weights=None,
             a = map_coordinates(alpha, [jnp.asarray(pts[..., k]) for k in range(3)],
                                 order=1, mode="constant", cval=0.0)
             if opacity_correction:
-                a = correct_opacity(a, step)
+                a = 1 - (1 - a) ** step  # `a` is per voxel; `step` is in voxels
             opacities.append(a)
         intensity = jnp.zeros(alpha.shape, jnp.float64)
         for m in range(samples):

@@ -366,7 +366,9 @@ def test_bricked_gradients_and_vmap(always_bricked):
 @pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
 def test_half_precision_bricked_gradient(always_bricked, dtype):
-    # the skipped bricks' gradient is an FFT convolution, which needs float32 or more
+    # the skipped bricks' gradient is an FFT convolution, which needs float32 or more.
+    # Rounding alpha to `dtype` and the gradient back to it: measured 0.39 eps (float16)
+    # and 0.38 eps (bfloat16) of relative error, at |g| up to 1
     alpha = _sparse_alpha((12, 12, 12), 13, jnp.float64)
     dirs = vdirs.fibonacci(3).astype(np.float32)
 
@@ -376,7 +378,8 @@ def test_half_precision_bricked_gradient(always_bricked, dtype):
     exact = jax.grad(f)(alpha, None)
     g = jax.grad(f)(alpha.astype(dtype), 4)
     assert g.dtype == dtype
-    np.testing.assert_allclose(np.asarray(g, np.float64), np.asarray(exact), atol=0.02)
+    np.testing.assert_allclose(np.asarray(g, np.float64), np.asarray(exact),
+                               rtol=float(jnp.finfo(dtype).eps))
 
 
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
@@ -408,29 +411,29 @@ def test_half_precision_marches_in_float32(dtype):
 def test_bad_inputs_raise_clear_errors():
     alpha = jnp.zeros((8, 8, 8), jnp.float32)
     dirs = vdirs.fibonacci(4)
-    with pytest.raises(ValueError, match="radius.*offset"):
+    with pytest.raises(ValueError, match=r"`radius` \(1.0\) must be > `offset` \(1.0\)"):
         lao(alpha, directions=dirs, radius=1.0, offset=1.0)
-    with pytest.raises(ValueError, match="samples"):
+    with pytest.raises(ValueError, match="`samples` must be >= 1"):
         lao(alpha, directions=dirs, radius=4.0, samples=0)
-    with pytest.raises(ValueError, match="empty"):
+    with pytest.raises(ValueError, match="`directions` is empty"):
         lao(alpha, directions=jnp.zeros((0, 3)), radius=4.0)
-    with pytest.raises(ValueError, match=r"\(L, 3\)"):
+    with pytest.raises(ValueError, match=r"`directions` must have shape \(L, 3\)"):
         lao(alpha, directions=jnp.ones((4, 2)), radius=4.0)
-    with pytest.raises(ValueError, match="directions"):
+    with pytest.raises(ValueError, match="`directions` must be >= 1 rays"):
         lao(alpha, directions=0, radius=4.0)
-    with pytest.raises(ValueError, match="3 dimensions"):
+    with pytest.raises(ValueError, match="`alpha` must have 3 dimensions"):
         lao(alpha[0], directions=dirs, radius=4.0)
-    with pytest.raises(ValueError, match="weights"):
+    with pytest.raises(ValueError, match=r"`weights` must have shape \(L,\) = \(4,\)"):
         lao(alpha, directions=dirs, radius=4.0, weights=jnp.ones(3))
-    with pytest.raises(ValueError, match="offset"):
+    with pytest.raises(ValueError, match="`offset` must be a finite number >= 0"):
         lao(alpha, directions=dirs, radius=4.0, offset=-1.0)
-    with pytest.raises(ValueError, match="max_radius"):
+    with pytest.raises(ValueError, match=r"`radius` \(4.0\) exceeds `max_radius`"):
         lao(alpha, directions=dirs, radius=4.0, max_radius=3.0)
-    with pytest.raises(ValueError, match="brick_size"):
+    with pytest.raises(ValueError, match="`brick_size` must be >= 1"):
         lao(alpha, directions=dirs, radius=4.0, brick_size=0)
-    with pytest.raises(TypeError, match="radius"):  # a bool is not a distance
+    with pytest.raises(TypeError, match="`radius` must be a number"):  # a bool is not a distance
         lao(alpha, directions=dirs, radius=True, offset=0.0)
-    with pytest.raises(TypeError, match="max_radius"):
+    with pytest.raises(TypeError, match="`max_radius` must be a number"):
         lao(alpha, directions=dirs, radius=0.5, offset=0.0, max_radius=True)
 
 
@@ -439,26 +442,28 @@ def test_single_sample_module_under_jit_checks_its_opacity():
     params = LocalAmbientOcclusion(3.0, directions=4, samples=1)
     ao = eqx.filter_jit(lambda p, a: p(a))
     assert bool(jnp.all(ao(params, jnp.full((6, 6, 6), 0.5)) == 1))
-    with pytest.raises(Exception, match="NaN"):
+    with pytest.raises(Exception, match="`alpha` contains NaN"):
         jax.block_until_ready(ao(params, jnp.full((6, 6, 6), 0.5).at[1, 2, 3].set(jnp.nan)))
 
 
 @pytest.mark.parametrize("samples", [16, 1])  # M = 1 takes no sample but checks as much
 def test_bad_values_raise_under_jit(samples):
+    # traced checks fail at run time through equinox, as jax's runtime error (its class
+    # varies with the jax version), so only the message is matched
     alpha = jnp.full((8, 8, 8), 0.5, jnp.float32)
     dirs = vdirs.fibonacci(4)
     f = jax.jit(lambda a, r, o: lao(a, directions=dirs, radius=r, offset=o, samples=samples,
                                     max_radius=8.0))
-    with pytest.raises(Exception, match="radius"):
+    with pytest.raises(Exception, match="`radius` must be > `offset`"):
         jax.block_until_ready(f(alpha, 1.0, 2.0))
-    with pytest.raises(Exception, match=r"\[0, 1\]"):
+    with pytest.raises(Exception, match=r"`alpha` must lie in \[0, 1\]"):
         jax.block_until_ready(f(alpha.at[0, 0, 0].set(1.5), 4.0, 1.0))
-    with pytest.raises(Exception, match="NaN"):
+    with pytest.raises(Exception, match="`alpha` contains NaN"):
         jax.block_until_ready(f(alpha.at[0, 0, 0].set(jnp.nan), 4.0, 1.0))
-    with pytest.raises(Exception, match="max_radius"):
+    with pytest.raises(Exception, match="`radius` exceeds `max_radius`"):
         jax.block_until_ready(f(alpha, 9.0, 1.0))
     with pytest.raises(Exception, match="`radius` finite"):
         jax.block_until_ready(f(alpha, jnp.nan, 1.0))
     g = jax.jit(lambda w: lao(alpha, directions=dirs, radius=3.0, samples=samples, weights=w))
-    with pytest.raises(Exception, match="weights"):
+    with pytest.raises(Exception, match="`weights` must be finite, >= 0"):
         jax.block_until_ready(g(jnp.asarray([1.0, -1.0, 0.0, 0.0])))

@@ -80,8 +80,27 @@ def test_correct_opacity_exact_ends_and_composition_law():
     np.testing.assert_allclose(1 - (1 - half) ** 2, a, atol=1e-12)
     assert float(nm.correct_opacity(1.0, 0.3)) == 1.0
     assert float(nm.correct_opacity(0.0, 0.3)) == 0.0
-    grads = jax.vmap(jax.grad(nm.correct_opacity, argnums=(0, 1)), in_axes=(0, None))(a, 2.0)
-    assert all(np.all(np.isfinite(g)) for g in grads)
+
+
+# opacities on [0, 1] and step ratios below, at and above 1
+_ALPHA, _RATIO = np.meshgrid(np.linspace(0, 1, 201), [0.25, 0.5, 1.0, 1.7, 3.0], indexing="ij")
+
+
+def test_correct_opacity_is_the_step_correction():
+    # alpha' = 1 - (1 - alpha)^r, written out here (the LAO reference uses the same formula)
+    got = nm.correct_opacity(jnp.asarray(_ALPHA), jnp.asarray(_RATIO))
+    np.testing.assert_allclose(got, 1 - (1 - _ALPHA) ** _RATIO, rtol=1e-13, atol=1e-14)
+
+
+def test_correct_opacity_gradients_are_analytic():
+    # d/da = r (1 - a)^(r - 1), d/dr = -(1 - a)^r log(1 - a), below a = 1 (a = 1 is
+    # test_correct_opacity_at_one's). atol: jax differentiates expm1 as expm1 + 1, which
+    # holds (1 - a)^r to an absolute, not relative, float64 eps (rel. 1e-10 at 1e-7)
+    a, r = _ALPHA[:-1], _RATIO[:-1]
+    g_a, g_r = jax.vmap(jax.vmap(jax.grad(nm.correct_opacity, argnums=(0, 1))))(
+        jnp.asarray(a), jnp.asarray(r))
+    np.testing.assert_allclose(g_a, r * (1 - a) ** (r - 1), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(g_r, -(1 - a) ** r * np.log1p(-a), rtol=1e-12, atol=1e-13)
 
 
 def test_opacity_from_extinction_and_smoothstep():
