@@ -1,5 +1,6 @@
 """Tests of volshade.cao: contextual AO equals a full LAO recompute under the clip, in
-values and gradients, for every clip shape, moving, under jit, vmap and grad."""
+values (every clip shape, also moving under jit and vmap) and in gradients (w.r.t. the
+opacity and the radius; the clip gets none)."""
 
 import equinox as eqx
 import jax
@@ -127,25 +128,54 @@ def test_hard_cases():
                                               unclipped=vs.lao(ALPHA, **m1), **m1)) == 1.0)
 
 
-def test_moving_clip_under_jit_and_vmap_never_recompiles():
-    unclipped = vs.lao(ALPHA, **KW)
+def _axes(first):
+    """An orthonormal matrix whose first column points along ``first``."""
+    q, r = np.linalg.qr(np.column_stack([first, np.eye(3)[:, :2]]))
+    return q * np.sign(np.diag(r))
+
+
+# each shape at a traced pose, its sizes fixed: a clip moving through a 16^3 volume
+MOVING = {
+    "sphere": lambda centre, rotation: vs.SphereClip(center=centre, radius=2.0,
+                                                     rotation=rotation),
+    "box": lambda centre, rotation: vs.BoxClip(center=centre, half_size=(1.5, 2.0, 1.0),
+                                               rotation=rotation),
+    "torus": lambda centre, rotation: vs.TorusClip(center=centre, major=2.0, minor=0.8,
+                                                   rotation=rotation),
+    "half-space": lambda centre, rotation: vs.HalfSpaceClip(center=centre, rotation=rotation),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MOVING))
+def test_moving_clip_under_jit_and_vmap_never_recompiles(name):
+    alpha, kw = ALPHA[:16, :16, :16], dict(KW, radius=2.5, samples=4)
+    unclipped = vs.lao(alpha, **kw)
     traces = []
 
     @jax.jit
-    def frame(centre):
+    def frame(centre, rotation):
         traces.append(1)
-        return vs.contextual_ao(ALPHA, clip=vs.SphereClip(center=centre, radius=3.0),
-                                unclipped=unclipped, **KW)
+        return vs.contextual_ao(alpha, clip=MOVING[name](centre, rotation),
+                                unclipped=unclipped, brick_size=4, **kw)
 
-    path = jnp.asarray([[4.0, 5.0, 6.0], [12.0, 11.0, 6.0], [20.0, 17.0, 20.0]])
-    frames = [frame(c) for c in path]
+    # a pose at a corner (few bricks marched), one inside, one outside the volume (the
+    # first local axis, a half-space's normal, pointing out of it)
+    centres = jnp.asarray([[14.0, 1.0, 2.0], [8.0, 12.0, 4.0], [40.0, 40.0, 40.0]])
+    rotations = jnp.asarray(np.stack([_axes([1.0, -1.0, -1.0]), ROTATION,
+                                      _axes([1.0, 1.0, 1.0])]))
+    clips = [MOVING[name](c, r) for c, r in zip(centres, rotations, strict=True)]
+    full = [_full(alpha, clip, **kw) for clip in clips]
+    assert 0 < affected_fraction(alpha.shape, clips[0], radius=2.5, brick_size=4) <= 0.5
+    assert float(jnp.max(jnp.abs(full[0] - full[1]))) > 0.1  # the poses differ
+    np.testing.assert_array_equal(np.asarray(full[2]), np.asarray(unclipped))
+    frames = [frame(c, r) for c, r in zip(centres, rotations, strict=True)]
     assert len(traces) == 1
-    for c, got in zip(path, frames, strict=True):
-        full = _full(ALPHA, vs.SphereClip(center=c, radius=3.0), **KW)
-        np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=0, atol=1e-12)
-    batched = jax.vmap(frame)(path)
-    for got, single in zip(batched, frames, strict=True):
-        np.testing.assert_allclose(np.asarray(got), np.asarray(single), rtol=0, atol=1e-12)
+    batched = jax.vmap(frame)(centres, rotations)  # every pose is its own
+    for i in range(len(full)):
+        np.testing.assert_allclose(np.asarray(frames[i]), np.asarray(full[i]), rtol=0,
+                                   atol=1e-12)
+        np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(full[i]), rtol=0,
+                                   atol=1e-12)
 
 
 @pytest.mark.slow
@@ -161,7 +191,7 @@ def test_gradients_equal_the_full_recompute_and_finite_differences():
               max_radius=5.0)
     kw.pop("radius")
 
-    def contextual(alpha, radius):
+    def contextual(alpha, radius, clip):
         unclipped = vs.lao(alpha, radius=radius, **kw)
         return jnp.sum(w * vs.contextual_ao(alpha, clip=clip, unclipped=unclipped,
                                             radius=radius, brick_size=4, **kw))
@@ -171,13 +201,15 @@ def test_gradients_equal_the_full_recompute_and_finite_differences():
 
     assert 0 < affected_fraction(alpha.shape, clip, radius=3.5, brick_size=4) <= 0.5
     r = jnp.asarray(3.5)
-    got = jax.jit(jax.grad(contextual, argnums=(0, 1)))(alpha, r)
+    got = jax.jit(jax.grad(contextual, argnums=(0, 1, 2)))(alpha, r, clip)
     ref = jax.jit(jax.grad(full, argnums=(0, 1)))(alpha, r)
     np.testing.assert_allclose(np.asarray(got[0]), np.asarray(ref[0]), rtol=0, atol=1e-10)
     np.testing.assert_allclose(float(got[1]), float(ref[1]), rtol=1e-10)
     assert float(jnp.max(jnp.abs(got[0]))) > 0
+    # the masks are piecewise constant in the clip's pose and size: no gradient
+    assert all(np.all(np.asarray(x) == 0) for x in jax.tree.leaves(got[2]))
     value, h = jax.jit(contextual), 1e-6
-    fd = (value(alpha, r + h) - value(alpha, r - h)) / (2 * h)
+    fd = (value(alpha, r + h, clip) - value(alpha, r - h, clip)) / (2 * h)
     np.testing.assert_allclose(float(got[1]), float(fd), rtol=1e-4)
 
 
@@ -201,17 +233,20 @@ def test_bad_values_raise_under_jit(samples):
     kw = dict(KW, samples=samples, max_radius=4.0)
     alpha = jnp.full((8, 8, 8), 0.5)
     unclipped = vs.lao(alpha, **kw)
-    f = jax.jit(lambda a, u, c, r: vs.contextual_ao(a, clip=c, unclipped=u, **dict(kw, radius=r)))
+    f = eqx.filter_jit(lambda a, u, c, r: vs.contextual_ao(a, clip=c, unclipped=u,
+                                                           **dict(kw, radius=r)))
     sphere = vs.SphereClip(center=(4.0, 4.0, 4.0), radius=2.0)
-    with pytest.raises(Exception, match="NaN"):
-        jax.block_until_ready(f(alpha.at[0, 0, 0].set(jnp.nan), unclipped, sphere, 3.5))
-    with pytest.raises(Exception, match="unclipped"):
-        jax.block_until_ready(f(alpha, unclipped + 1, sphere, 3.5))
-    with pytest.raises(Exception, match="finite"):
+    radius = jnp.asarray(3.5)  # an array: traced by filter_jit, as the others
+    with pytest.raises(eqx.EquinoxRuntimeError, match="`alpha` contains NaN or inf"):
+        jax.block_until_ready(f(alpha.at[0, 0, 0].set(jnp.nan), unclipped, sphere, radius))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"`unclipped` must lie in \[0, 1\]"):
+        jax.block_until_ready(f(alpha, unclipped + 1, sphere, radius))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="SphereClip: the clip's leaves must be "
+                                                      "finite"):
         jax.block_until_ready(f(alpha, unclipped, eqx.tree_at(lambda c: c.center, sphere,
-                                                               jnp.full(3, jnp.nan)), 3.5))
-    with pytest.raises(Exception, match="radius"):
-        jax.block_until_ready(f(alpha, unclipped, sphere, 0.25))
+                                                               jnp.full(3, jnp.nan)), radius))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="`radius` must be > `offset`"):
+        jax.block_until_ready(f(alpha, unclipped, sphere, jnp.asarray(0.25)))
 
 
 def test_scene_clips_the_render_and_the_lao_ambient():

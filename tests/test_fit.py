@@ -150,6 +150,40 @@ def test_fit_with_a_minimiser():
     np.testing.assert_allclose(float(result.values["phong.diffuse"]), 0.4, atol=1e-6)
 
 
+def _rosenbrock(y, scale):
+    """Rosenbrock's function as two residuals (0 at (1, 1) only), times ``scale``;
+    ``y[2]`` has no effect on them."""
+    return scale * jnp.stack([10 * (y[1] - y[0] ** 2), 1 - y[0]])
+
+
+def test_gauss_newton_line_search_on_its_own():
+    solver = vs.GaussNewtonLineSearch(rtol=1e-10, atol=1e-12)
+    # from Rosenbrock's classic start the full step overshoots across the curved valley
+    # (the sum of squares 24.2 -> 2343) and the line search shortens it; the parameter
+    # without effect gets no step (a least-squares solve, not a singular one); the step
+    # and the search do not depend on the scale of the residuals (image residuals are
+    # small)
+    y0 = jnp.asarray([-1.2, 1.0, 0.3])
+    steps = []
+    for scale in (1.0, 2.0 ** -20):  # a power of 2: the same iterates, exactly
+        sol = optx.least_squares(_rosenbrock, solver, y0, args=jnp.asarray(scale),
+                                 max_steps=100)
+        assert sol.result == optx.RESULTS.successful
+        np.testing.assert_allclose(np.asarray(sol.value), [1.0, 1.0, 0.3], rtol=0, atol=1e-12)
+        steps.append(int(sol.stats["num_steps"]))
+    assert steps[0] == steps[1] < 100
+    # atan(x): from |x| > 1.39 every full Gauss-Newton step lands farther out on the
+    # other side; backtracking Armijo halves it until the loss falls enough. The same
+    # solver with full steps (its `search` option) diverges.
+    x0 = jnp.asarray([3.0])
+    sol = optx.least_squares(lambda x, _: jnp.arctan(x), solver, x0, max_steps=100)
+    assert sol.result == optx.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(sol.value), [0.0], rtol=0, atol=1e-12)
+    full = vs.GaussNewtonLineSearch(rtol=1e-10, atol=1e-12, search=optx.LearningRate(1.0))
+    sol = optx.least_squares(lambda x, _: jnp.arctan(x), full, x0, max_steps=100, throw=False)
+    assert not abs(float(sol.value[0])) < 1e3  # far out, or NaN
+
+
 def test_forward_mode_through_lao_from_its_reverse_mode():
     # LAO's custom VJP has no forward mode; the wrapper's JVP is the transposed VJP,
     # checked against the Jacobian from reverse mode and against finite differences

@@ -34,9 +34,12 @@ def test_transfer_function_under_jit_vmap_grad():
     x = jnp.linspace(0, 1, 5)
     np.testing.assert_allclose(jax.jit(lambda t, v: t.opacity(v, step=0.5))(tf, x),
                                tf.opacity(x, step=0.5))
-    batch = jax.vmap(lambda o: TransferFunction(tf.points, tf.colors, o).opacity(x))(
-        jnp.stack([tf.opacities, 2 * tf.opacities / 3]))
-    np.testing.assert_allclose(batch[1], 2 * batch[0] / 3)
+    opacities = jnp.stack([tf.opacities, 2 * tf.opacities / 3])
+    batch = jax.vmap(lambda o: TransferFunction(tf.points, tf.colors, o).opacity(x))(opacities)
+    for got, o in zip(batch, opacities, strict=True):
+        np.testing.assert_allclose(got, TransferFunction(tf.points, tf.colors, o).opacity(x),
+                                   rtol=0, atol=1e-15)
+    np.testing.assert_allclose(batch[0], [0, 0.2, 0.4, 0.6, 0.8], rtol=1e-15)  # not all zero
     g = jax.grad(lambda t: jnp.sum(t.opacity(x, step=2.0)))(tf)
     assert np.all(np.isfinite(g.opacities)) and np.all(np.isfinite(g.points))
     assert float(jnp.sum(jnp.abs(g.opacities))) > 0

@@ -166,7 +166,8 @@ class BoxClip(Clip):
     Args:
         center: ``(3,)`` centre ``(d, h, w)`` in voxel index coordinates.
         half_size: half the box's edge along each local axis in voxels (> 0): one
-            number (a cube) or three.
+            number (a cube) or three; ``(..., 3)`` builds a batch of boxes, for vmap
+            (as a batch of sizes does for the other shapes).
         rotation: optional ``(3, 3)`` orthonormal matrix whose columns are the box's
             local axes (default the identity: edges along ``d``, ``h``, ``w``).
     """
@@ -180,10 +181,12 @@ class BoxClip(Clip):
         where = "volshade.BoxClip"
         self.center, self.rotation = _pose(center, rotation, where)
         half_size = _checks.float_leaf(half_size, "half_size", where)
-        if half_size.shape not in ((), (3,)):
+        if half_size.shape != () and half_size.shape[-1] != 3:
             raise ValueError(f"{where}: `half_size` must be one number or three (d, h, w), "
-                             f"in voxels, got shape {half_size.shape}.")
-        self.half_size = _positive(jnp.broadcast_to(half_size.astype(float), (3,)),
+                             f"in voxels (a batch of boxes, for vmap: shape (..., 3)), got "
+                             f"shape {half_size.shape}.")
+        self.half_size = _positive(jnp.broadcast_to(half_size.astype(float),
+                                                    half_size.shape or (3,)),
                                    "half_size", where)
 
     def _local_distance(self, u, v, w):
