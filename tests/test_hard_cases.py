@@ -2,8 +2,12 @@
 one-voxel volumes, radii and sample positions on voxel boundaries.
 
 Every test asserts values (analytic, or the brute-force references kept in
-``tests/``) and, where the function is differentiable, finite gradients that match
-float64 finite differences or the analytic derivative.
+``tests/``). Where a hard case is differentiable, its gradient is checked, in the same
+test or the next one, against float64 finite differences or the analytic derivative;
+where the point has no derivative (an opacity at 0 or 1, a tie of importances), against
+the one-sided one. Not so: the LAO of the thick slab (values only), of opaque blocks
+(float32 against float64) and the ray of the 1e30 gaps whose importance ends tied with
+the background's (see there).
 """
 
 import functools
@@ -177,6 +181,20 @@ HUGE_GAP_RAYS = [  # unit importances (x 1e30), alphas
 ]
 
 
+def _ray_loss(c, a, i, i_bg):
+    """sum(RGBA) of one ray by the float64 reference (eq. 8 literally)."""
+    return np.sum(ref_comp.importance(c, a, i, BG, i_bg))
+
+
+def _one_sided(f, x, k, lo, hi, h=1e-6):
+    """Second-order one-sided differences of scalar ``f`` in ``x[k]``, each way that stays in
+    ``[lo, hi]`` (float64)."""
+    e = np.zeros_like(x)
+    e[k] = h
+    return [w * (-3 * f(x) + 4 * f(x + w * e) - f(x + 2 * w * e)) / (2 * h)
+            for w in (1, -1) if lo <= x[k] + 2 * w * h <= hi]
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_composite_importance_gaps_of_1e30(dtype):
     rng = np.random.default_rng(0)
@@ -201,7 +219,34 @@ def test_composite_importance_gaps_of_1e30(dtype):
     assert out.dtype == dtype
     np.testing.assert_allclose(np.asarray(out), np.stack(want), rtol=0,
                                atol=1e-6 if dtype == jnp.float32 else 1e-13)
-    assert _finite(vjp(jnp.ones_like(out)))
+    grads = [np.asarray(g, float) for g in vjp(jnp.ones_like(out))]
+    assert _finite(grads)
+    # d sum(RGBA) against the float64 reference (importances x 1e3, as above)
+    atol = 1e-5 if dtype == jnp.float32 else 1e-6
+    for r, (c, a, i, i_bg) in enumerate(zip(colors, alphas, 1e3 * np.stack(units),
+                                            1e3 * np.asarray(bg_units), strict=True)):
+        # linear in the colours: their weights; where alpha_s = 0, the weight's limit as
+        # alpha_s -> 0+ (the one-sided derivative)
+        for s in range(len(a)):
+            lifted = np.where(np.arange(len(a)) == s, np.maximum(a, 1e-9), a)
+            e = np.zeros_like(c)
+            e[s] = 1
+            weight = (_ray_loss(c + e, lifted, i, i_bg) - _ray_loss(c, lifted, i, i_bg)) / 3
+            np.testing.assert_allclose(grads[0][r, s], weight, rtol=0, atol=atol)
+        # alpha and importance: the derivative where both one-sided differences agree, else
+        # (alpha at 0 or 1, a tie of importances) one side's. Not where the accumulated
+        # importance ends tied with the background's (the ray 1e30 x [-1, 1, -1, 1, 0] over
+        # 1e30): composite takes min(0, K - I_bg) there, whose slope is 1/2, and no side's
+        # derivative results
+        c_n, a_n, i_n, _ = ref_comp.importance(c, a, i, return_state=True)
+        if abs(i_n - np.log(a_n) - i_bg) < 1e-9:
+            continue
+        by_alpha = functools.partial(_ray_loss, c, i=i, i_bg=i_bg)
+        by_importance = functools.partial(_ray_loss, c, a, i_bg=i_bg)
+        for s in range(len(a)):
+            for got, sides in ((grads[1][r, s], _one_sided(by_alpha, a, s, 0, 1)),
+                               (grads[2][r, s], _one_sided(by_importance, i, s, -np.inf, np.inf))):
+                assert min(abs(got - side) for side in sides) <= atol, (r, s, got, sides)
 
 
 # =========================================================================== lao
@@ -209,12 +254,22 @@ def test_composite_importance_gaps_of_1e30(dtype):
 
 @pytest.mark.parametrize(("corr", "brick_size"), [(False, None), (True, 4)])
 def test_lao_one_voxel_offset_one_is_exactly_one(corr, brick_size):
-    # every sample lies at least one voxel away: outside the volume, where opacity is 0
+    # the first sample lies at s = a + (R - a) / 2M = 1.25, and icosphere(0)'s directions
+    # have a largest component of 0.85: every sample is more than one voxel from the voxel
+    # along that axis, outside its trilinear support, and reads the zero padding. So AO = 1,
+    # and small changes of alpha, R or a keep it so: the gradient is exactly 0 (checked on
+    # the plain march: the bricks' backward pass takes seconds to compile)
+    def f(alpha, radius, offset):
+        return lao(alpha, directions=DIRS12, radius=radius, offset=offset, samples=4,
+                   opacity_correction=corr, brick_size=brick_size, max_radius=4.0)[0, 0, 0]
+
+    assert 1.25 * np.max(np.abs(DIRS12), axis=1).min() > 1
     for value in (0.0, 1.0):
-        ao = lao(jnp.full((1, 1, 1), value), directions=DIRS12, radius=3.0, offset=1.0,
-                 samples=4, opacity_correction=corr, brick_size=brick_size)
-        assert ao.shape == (1, 1, 1)
-        assert float(ao[0, 0, 0]) == 1.0
+        alpha = jnp.full((1, 1, 1), value)
+        assert float(f(alpha, 3.0, 1.0)) == 1.0
+        if brick_size is None:
+            grads = jax.grad(f, (0, 1, 2))(alpha, 3.0, 1.0)
+            assert all(bool(jnp.all(g == 0)) for g in grads), grads
 
 
 @pytest.mark.parametrize("corr", [False, True])
@@ -489,14 +544,26 @@ def test_threshold_gradients_with_nearly_equal_low_and_high(gap):
 def test_regression_gradient_of_volumes_smaller_than_the_kernel(shape, size):
     rng = np.random.default_rng(size)
     f = jnp.asarray(rng.uniform(0, 1, shape))
-    grad = jax.jit(lambda x: regression_gradient(x, size=size))
-    g = grad(f)
+    cotangent = jnp.asarray(rng.standard_normal((*shape, 3)))
+
+    @jax.jit  # the fit and its vector-Jacobian product, compiled together
+    def grad(x):
+        g, vjp = jax.vjp(lambda x: regression_gradient(x, size=size), x)
+        return g, vjp(cotangent)[0]
+
+    g, vjp = grad(f)
     assert g.shape == (*shape, 3)
     np.testing.assert_allclose(np.asarray(g), regression_gradient_reference(f, size=size),
                                rtol=0, atol=1e-12)
+    # the fit is linear in the field: its vector-Jacobian product is the reference's
+    # Jacobian (its response to each unit field) applied to the cotangent
+    jacobian = np.stack([regression_gradient_reference(e.reshape(shape), size=size)
+                         for e in np.eye(f.size)])
+    np.testing.assert_allclose(np.asarray(vjp).ravel(),
+                               np.tensordot(jacobian, cotangent, f.ndim + 1), rtol=0, atol=1e-12)
     # a constant field: exactly 0, whatever the edge replication
     for value in (0.0, 0.37, 1.0):
-        assert bool(jnp.all(grad(jnp.full(shape, value)) == 0))
+        assert bool(jnp.all(grad(jnp.full(shape, value))[0] == 0))
 
 
 @pytest.mark.parametrize(("dtype", "size"), [(jnp.float32, 5), (jnp.float64, 3)])
@@ -587,11 +654,16 @@ def test_viewpoint_saliency_gradients_of_one_voxel():
     g_o, g_s = g(ones, ones)
     np.testing.assert_allclose(float(g_o[0, 0, 0]), 4.0, rtol=1e-6)
     np.testing.assert_allclose(float(g_s[0, 0, 0]), np.sum(1 / MAJOR), rtol=1e-6)
-    assert _finite(g(0 * ones, ones))  # opacity 0: nothing seen, area 0
+    # opacity 0: nothing seen, area 0, and a view that sees nothing scores 0 (not 0/0),
+    # with slope 0 in both (the quotient is cut where the area is 0, a step in opacity)
+    g_o, g_s = g(0 * ones, ones)
+    assert float(g_o[0, 0, 0]) == 0.0 and float(g_s[0, 0, 0]) == 0.0
+    # the transmittance in front of the voxel does not involve its own opacity: slope 0 in
+    # it, and 1 per view in its saliency, at opacity 1 and 0 alike
     g = grad("transmittance", False)
-    g_o, g_s = g(ones, ones)
-    assert float(g_o[0, 0, 0]) == 0.0 and float(g_s[0, 0, 0]) == len(VIEWS)
-    assert _finite(g(0 * ones, ones))
+    for opacity in (ones, 0 * ones):
+        g_o, g_s = g(opacity, ones)
+        assert float(g_o[0, 0, 0]) == 0.0 and float(g_s[0, 0, 0]) == len(VIEWS)
 
 
 @pytest.mark.parametrize(("visibility", "per_area"), [("transmittance", False),
@@ -657,46 +729,68 @@ def test_modulate_opacity_at_zero_one_and_the_threshold(dtype):
 # =========================================================================== render
 
 
-def _blob(n=6):
-    x = np.linspace(-1, 1, n)
-    d, h, w = np.meshgrid(x, x, x, indexing="ij")
-    return np.exp(-(d ** 2 + h ** 2 + w ** 2) * 1.5)
+# Orthographic rays along -h through a (1, 6, 1) volume, one sample at each voxel centre
+# (step = 1 voxel: no interpolation between voxels, alpha = alpha0): every ray sees the
+# profile _GAP_X back to front. Colour and opacity are linear in the intensity, so the
+# intensity maximum has the largest importance also with extinction weighted -1e30.
+_GAP_X = np.array([0.2, 0.9, 0.5, 0.3, 0.6, 0.4])
+_GAP_C0, _GAP_C1 = np.array([0.1, 0.9, 0.3]), np.array([0.8, 0.2, 0.6])
+_GAP_CAM = Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=(2, 2),
+                        projection="orthographic", width=0.2)
+_GAP_W = np.random.default_rng(4).uniform(0.5, 1.5, (2, 2, 4))  # weights of the loss
+_GAP_IMPORTANCE = {"1e30": vs.Importance(intensity=1e30, extinction=-1e30, background=-1e30),
+                   "1e6": vs.Importance(intensity=1e6, extinction=0.0, background=0.0)}
 
 
-_CAM = Camera.orbit(azimuth=30.0, elevation=20.0, image_shape=(4, 4))
+def _gap_render(volume, imp):
+    tf = TransferFunction.from_points([(0.0, *_GAP_C0, 0.3), (1.0, *_GAP_C1, 0.8)],
+                                      dtype=volume.dtype)
+    return march(volume, tf, _GAP_CAM, step=1.0, composition="importance", importance=imp,
+                 background=BG)
 
 
-@pytest.fixture(scope="module")
-def huge_importance_images():
-    """Renders of a small blob with importance weights of 1e6 and 1e30 (importance gaps
-    of that size between samples, and between the samples and the background)."""
-    @jax.jit  # the weights are array leaves: one compilation per dtype
-    def render(volume, imp):
-        return march(volume, vs.transfer.preset("grey"), _CAM, composition="importance",
-                     importance=imp, step=0.7)
-
-    out = {}
-    for name, imp, dtypes in (("1e30", vs.Importance(intensity=1e30, extinction=-1e30,
-                                                     background=-1e30), DTYPES),
-                              ("1e6", vs.Importance(intensity=1e6, extinction=0.0,
-                                                    background=0.0), [jnp.float64])):
-        for dtype in dtypes:
-            out[name, dtype] = render(jnp.asarray(_blob(), dtype), imp)
-    return out
+def _gap_limit(x):
+    """RGBA of one ray through samples ``x`` (front first) as the gaps grow without bound
+    (eq. 8 with m = 0 for a new peak, 1 behind it): the maximum, at k, replaces what lies in
+    front of it and takes its opacity, 1 - T_{k+1}; the samples behind it and the background
+    composite as usual."""
+    alpha = 0.3 + 0.5 * x
+    color = _GAP_C0 + x[:, None] * (_GAP_C1 - _GAP_C0)
+    t = np.concatenate([[1.0], np.cumprod(1 - alpha)])
+    k = np.argmax(x)
+    rgb = ((1 - t[k + 1]) * color[k] + (t[k + 1:-1] * alpha[k + 1:]) @ color[k + 1:]
+           + t[-1] * np.asarray(BG))
+    return np.concatenate([rgb, [1 - t[-1]]])
 
 
-def test_render_with_huge_importance_gaps(huge_importance_images):
-    imgs = huge_importance_images
-    for (_, dtype), img in imgs.items():
-        assert img.dtype == dtype and img.shape == (4, 4, 4)
-        assert _finite(img)
-        assert float(img.min()) >= 0 and float(img.max()) <= 1 + 1e-6
-    np.testing.assert_allclose(np.asarray(imgs["1e30", jnp.float32], float),
-                               np.asarray(imgs["1e30", jnp.float64]), rtol=0, atol=1e-5)
-    # both are far past exp's range: the same limit (the intensity maximum shows through)
-    np.testing.assert_allclose(np.asarray(imgs["1e6", jnp.float64]),
-                               np.asarray(imgs["1e30", jnp.float64]), rtol=0, atol=1e-12)
-    assert float(imgs["1e6", jnp.float64][..., 3].max()) > 0.1
+@pytest.mark.slow
+def test_render_with_huge_importance_gaps():
+    def loss(volume, imp):
+        img = _gap_render(volume, imp)
+        return jnp.sum(_GAP_W * img), img
+
+    # (the weights are array leaves: one compilation for both)
+    value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    front_first = _GAP_X[::-1]  # the rays run along -h
+    assert np.argmax(front_first) not in (0, len(front_first) - 1)  # things on both sides
+    want = _gap_limit(front_first)
+    # the gradient of the limit (central differences of the closed form, in voxel order):
+    # what lies in front of the maximum counts by its opacity only, and the importances
+    # (slopes e^-gap = 0) not at all
+    w = _GAP_W.sum((0, 1))
+    want_grad = [w @ (_gap_limit(front_first + 1e-6 * e) - _gap_limit(front_first - 1e-6 * e))
+                 / 2e-6 for e in np.eye(len(front_first))][::-1]
+    volume = _GAP_X.reshape(1, 6, 1)
+    for name, imp in _GAP_IMPORTANCE.items():  # from both sides of exp's range
+        (_, img), grad = value_and_grad(jnp.asarray(volume), imp)
+        assert img.dtype == jnp.float64 and img.shape == (2, 2, 4)
+        np.testing.assert_allclose(np.asarray(img), np.broadcast_to(want, img.shape), rtol=0,
+                                   atol=1e-14, err_msg=name)
+        np.testing.assert_allclose(np.asarray(grad).ravel(), want_grad, rtol=1e-8, err_msg=name)
+    img = jax.jit(_gap_render)(jnp.asarray(volume, jnp.float32), _GAP_IMPORTANCE["1e30"])
+    assert img.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(img, float), np.broadcast_to(want, img.shape), rtol=0,
+                               atol=1e-6)
 
 
 def test_render_one_voxel_volume():
@@ -707,15 +801,34 @@ def test_render_one_voxel_volume():
     tf = TransferFunction.from_points([(0.0, *rgb, alpha0), (1.0, *rgb, alpha0)], dtype=dtype)
     cam = Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=(4, 4), projection="orthographic",
                        width=2.0)
-    img = jax.jit(lambda v: march(v, tf, cam, step=0.3, composition="importance",
-                                  importance=vs.Importance(intensity=5.0), background=BG))(
-        jnp.full((1, 1, 1), 0.5, dtype))
+    weights = np.random.default_rng(6).uniform(0.5, 1.5, (4, 4, 4))
+
+    def loss(volume, tf):
+        img = march(volume, tf, cam, step=0.3, composition="importance",
+                    importance=vs.Importance(intensity=5.0), background=BG)
+        return jnp.sum(jnp.asarray(weights, dtype) * img), img
+
+    (_, img), (g_volume, g_tf) = jax.jit(jax.value_and_grad(loss, (0, 1), has_aux=True))(
+        jnp.full((1, 1, 1), 0.5, dtype), tf)
     assert img.dtype == dtype
     hit = np.zeros((4, 4), bool)
     hit[1:3, 1:3] = True
     want = np.where(hit[..., None], np.concatenate([alpha0 * rgb + (1 - alpha0) * np.asarray(BG),
                                                     [alpha0]]), np.asarray([*BG, 0.0]))
     np.testing.assert_allclose(np.asarray(img), want, rtol=0, atol=1e-6)
+    # the hit pixels are alpha0 c + (1 - alpha0) bg and alpha0 (the segments' corrected
+    # opacities compose to alpha0 exactly), whose slopes are c - bg and 1 in alpha0 and alpha0
+    # in c; the value 0.5 takes half of each from the two control points. The volume moves
+    # no colour or opacity (the transfer function is constant) and all the samples'
+    # importances together (compositing sees only their differences): slope 0
+    w_hit = weights[hit].sum(0)
+    np.testing.assert_allclose(np.asarray(g_tf.opacities),
+                               np.full(2, 0.5 * (w_hit[:3] @ (rgb - np.asarray(BG)) + w_hit[3])),
+                               rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(g_tf.colors),
+                               np.broadcast_to(0.5 * alpha0 * w_hit[:3], (2, 3)), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(g_tf.points), 0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(g_volume), 0, atol=1e-6)
 
 
 # =========================================================================== transfer
