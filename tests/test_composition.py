@@ -203,6 +203,30 @@ def test_background_importance_fades_volume():
     assert np.all(np.diff(np.stack(alphas), axis=0) <= 1e-15)
 
 
+def test_a_tie_with_the_background_importance_takes_the_behind_side():
+    # one opaque sample of importance 0 over a background of importance 0: K = I_bg, a
+    # kink. Below it the background shows through its opacity (m = e^(K - I_bg)), above
+    # it not (m = 1). The derivative is the side below, the one the steps take for a tie
+    # K = I_s; jnp.minimum's mean slope (-0.6 here) was neither side's
+    c = jnp.asarray([[0.5, 0.2, 0.1]])
+    bg = jnp.ones(3)
+
+    def loss(a, i):
+        return jnp.sum(composite(c * a[:, None], a, importance=i, background=bg,
+                                 background_importance=0.0))
+
+    a, i, h = jnp.ones(1), jnp.zeros(1), 1e-6
+    below = float((loss(a, i) - loss(a, i - h)) / h)
+    above = float((loss(a, i + h) - loss(a, i)) / h)
+    np.testing.assert_allclose([below, above], [-1.2, 0.0], atol=1e-5)  # sum(c) - sum(bg)
+    g_i = float(jax.grad(loss, 1)(a, i)[0])
+    np.testing.assert_allclose(g_i, -1.2, rtol=1e-12)
+    # the modulation of a sample tied with K = I_s: the same side
+    state = importance_step(importance_init((), jnp.float64),
+                            Sample(c[0], jnp.asarray(1.0), jnp.asarray(0.0)))
+    assert float(jax.grad(lambda s: modulation(state, s))(jnp.asarray(0.0))) == -1.0
+
+
 def test_tends_to_coloured_mip_as_intensity_weight_grows():
     rng = np.random.default_rng(13)
     n_rays, n_samples = 256, 24

@@ -236,8 +236,9 @@ def test_composite_importance_gaps_of_1e30(dtype):
         # alpha and importance: the derivative where both one-sided differences agree, else
         # (alpha at 0 or 1, a tie of importances) one side's. Not where the accumulated
         # importance ends tied with the background's (the ray 1e30 x [-1, 1, -1, 1, 0] over
-        # 1e30): composite takes min(0, K - I_bg) there, whose slope is 1/2, and no side's
-        # derivative results
+        # 1e30): there a tie with the background meets ties between samples, each taken as
+        # behind, and the derivative of sample 3 (1.56) is neither side's (0.49, 0); a lone
+        # tie with the background is test_composition's
         c_n, a_n, i_n, _ = ref_comp.importance(c, a, i, return_state=True)
         if abs(i_n - np.log(a_n) - i_bg) < 1e-9:
             continue

@@ -159,6 +159,13 @@ def _gap(state: ImportanceState, importance: Array, active: Array) -> Array:
     return jnp.where(active, state.importance_offset + diff, 0)
 
 
+def _log_modulation(gap: Array) -> Array:
+    r"""$\min(0, K_i - I_s)$ from the gap $K_i - I_s$, a tie taken as behind (slope 1), as
+    the steps take it: ``jnp.minimum`` gives a tie the mean of the two slopes, which is
+    neither side's derivative."""
+    return jnp.where(gap > 0, 0, gap)
+
+
 def modulation(state: ImportanceState, importance: ArrayLike) -> Array:
     r"""The modulation factor $m_i$ (eq. 2 with eq. 3) for an incoming sample.
 
@@ -178,7 +185,7 @@ def modulation(state: ImportanceState, importance: ArrayLike) -> Array:
         ``(...)`` modulation factor in [0, 1].
     """
     importance = jnp.asarray(importance, state.transmittance.dtype)
-    return jnp.exp(jnp.minimum(_gap(state, importance, state.transmittance < 1), 0))
+    return jnp.exp(_log_modulation(_gap(state, importance, state.transmittance < 1)))
 
 
 class _Gap(NamedTuple):
@@ -570,7 +577,7 @@ def importance_finish(
     alpha_acc = 1 - t_acc
     i_bg = jnp.broadcast_to(jnp.asarray(background_importance, dtype), t_acc.shape)
     active = (alpha_acc > 0) & (i_bg > -jnp.inf)
-    m = jnp.exp(jnp.minimum(_gap(state, i_bg, active), 0))
+    m = jnp.exp(_log_modulation(_gap(state, i_bg, active)))
     a = m * alpha_acc
     one_minus_a = t_acc + (1 - m) * alpha_acc
     rgb = _expand(m) * c_acc + _expand(one_minus_a) * _background(background, t_acc.shape, dtype)
