@@ -150,6 +150,32 @@ def test_fit_with_a_minimiser():
     np.testing.assert_allclose(float(result.values["phong.diffuse"]), 0.4, atol=1e-6)
 
 
+@pytest.mark.parametrize("solver", [None, optx.BFGS(rtol=1e-9, atol=1e-12),
+                                    optx.GradientDescent(learning_rate=0.5, rtol=1e-9,
+                                                         atol=1e-12)],
+                         ids=["gauss-newton", "bfgs", "gradient-descent"])
+def test_losses_are_the_mean_squared_differences_of_the_renders(solver):
+    # stopped after two steps, far from the optimum: the reported losses (read from the
+    # solver's state where it holds them) are those of the start's and the fitted
+    # scene's renders, computed here apart
+    vol = vs.data.phantom("shells", shape=8).astype(jnp.float64)
+    truth = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"),
+                     background=(0.2, 0.5, 0.7))
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(6, 6))
+    target = vs.render(truth, cam)[..., :3]
+    start = eqx.tree_at(lambda s: s.background, truth, jnp.full(3, 0.9))
+    result = vs.fit(start, cam, target, params={"background": (0.0, 1.0)}, max_steps=2,
+                    throw=False, solver=solver)
+    assert result.result != optx.RESULTS.successful  # the step limit
+
+    def loss(scene):
+        return np.mean((np.asarray(vs.render(scene, cam))[..., :3] - np.asarray(target)) ** 2)
+
+    np.testing.assert_allclose(float(result.initial_loss), loss(start), rtol=1e-12)
+    np.testing.assert_allclose(float(result.loss), loss(result.scene), rtol=1e-12)
+    assert 0 < float(result.loss) < float(result.initial_loss)
+
+
 def _rosenbrock(y, scale):
     """Rosenbrock's function as two residuals (0 at (1, 1) only), times ``scale``;
     ``y[2]`` has no effect on them."""
