@@ -213,6 +213,36 @@ def test_gradients_equal_the_full_recompute_and_finite_differences():
     np.testing.assert_allclose(float(got[1]), float(fd), rtol=1e-4)
 
 
+@pytest.mark.slow
+def test_vmapped_poses_keep_their_values_and_gradients():
+    # under vmap every pose is computed alone (a loop: each marches its own bricks), in
+    # its value and in its gradient w.r.t. the opacity and the radius
+    alpha = ALPHA[:12, :12, :12]
+    kw = dict(KW, samples=3, max_radius=4.0)
+    kw.pop("radius")
+    w = jnp.asarray(RNG.normal(size=alpha.shape))
+
+    def loss(alpha, radius, centre):
+        unclipped = vs.lao(alpha, radius=radius, **kw)
+        clip = vs.SphereClip(center=centre, radius=3.0)
+        return jnp.sum(w * vs.contextual_ao(alpha, clip=clip, unclipped=unclipped,
+                                            radius=radius, brick_size=4, **kw))
+
+    grad = jax.value_and_grad(loss, argnums=(0, 1))
+    centres = jnp.asarray([[2.0, 2.0, 2.0], [10.0, 3.0, 8.0], [40.0, 40.0, 40.0]])
+    radii = jnp.asarray([3.5, 2.5, 3.0])
+    value, (d_alpha, d_radius) = jax.jit(jax.vmap(grad, in_axes=(None, 0, 0)))(
+        alpha, radii, centres)
+    one = jax.jit(grad)
+    for i in range(3):
+        want_value, (want_alpha, want_radius) = one(alpha, radii[i], centres[i])
+        np.testing.assert_allclose(float(value[i]), float(want_value), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(d_alpha[i]), np.asarray(want_alpha), rtol=0,
+                                   atol=1e-12)
+        np.testing.assert_allclose(float(d_radius[i]), float(want_radius), rtol=1e-10)
+        assert float(jnp.max(jnp.abs(d_alpha[i]))) > 0
+
+
 def test_bad_inputs_raise_clear_errors():
     unclipped = vs.lao(ALPHA, **KW)
     with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):

@@ -14,7 +14,8 @@ Here the affected voxels are gathered into bricks of ``brick_size`` and only the
 bricks holding one are marched (``volshade.lao``'s bricked march: compacted,
 vmapped groups of padded windows); when more than half of the bricks are affected
 the whole clipped volume is marched instead, which is then cheaper. The clip's pose
-is traced, so a moving clip never recompiles.
+is traced, so a moving clip never recompiles; under ``jax.vmap`` (a batch of poses)
+the poses run one after another, each marching only its own bricks.
 
 Two parts of the paper are not needed here: its clipped voxels get AO = 1
 (category a) and its clipping test anti-aliases the opacity at the clip's surface
@@ -32,7 +33,10 @@ References:
     Titov, Kersten-Oertel, Drouin, "Contextual ambient occlusion", section 3 (eq. 2-3).
 """
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -118,6 +122,38 @@ def contextual_ao(
 def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, samples,
                 correction, brick_size, max_active):
     """The validated computation, compiled once per shape and static options."""
+    one = functools.partial(_contextual_one, pad=pad, samples=samples, correction=correction,
+                            brick_size=brick_size, max_active=max_active)
+    return _one_at_a_time(one)(alpha, unclipped, clip, dirs, weights, radius, offset)
+
+
+def _one_at_a_time(fn):
+    """``fn``, batched under ``jax.vmap`` by a loop over the batch, in its values and in
+    its reverse-mode gradient: each element (a pose of the clip) keeps its own
+    ``lax.cond``s, so it marches its own bricks only. ``vmap`` of a ``lax.cond`` with a
+    batched predicate runs both branches: every pose would march the whole volume as
+    well as its bricks. The backward pass runs ``fn`` again for its residuals
+    (``jax.vjp``'s residuals are a pytree whose structure a loop cannot carry): the
+    gradient of one pose with its unclipped LAO took 0.40-0.42 s instead of 0.38 s
+    (64^3 shells, 16 rays of 16 samples, float32, 2 CPU cores)."""
+    forward = jax.custom_batching.sequential_vmap(fn)
+    backward = jax.custom_batching.sequential_vmap(
+        lambda args, g: jax.vjp(fn, *args)[1](g))
+
+    @jax.custom_vjp
+    def wrapped(*args):
+        return forward(*args)
+
+    def wrapped_fwd(*args):
+        return forward(*args), args
+
+    wrapped.defvjp(wrapped_fwd, backward)
+    return wrapped
+
+
+def _contextual_one(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, samples,
+                    correction, brick_size, max_active):
+    """:func:`_contextual` for one clip."""
     if samples == 1:  # eq. 2 with M = 1: an empty product, clip or not
         return _unoccluded(alpha, unclipped, _checked(clip), dirs, weights, radius, offset)
     distances = _voxel_distances(alpha.shape, clip)
