@@ -361,6 +361,14 @@ def test_bricked_gradients_and_vmap(always_bricked):
                                          brick_size=4)))(batch)
     ref = jnp.stack([lao(a, directions=dirs, radius=4.2, samples=2) for a in batch])
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=1e-12)
+    # vmapped, each element takes its own branch (a loop): gradients as each alone
+    radii = jnp.asarray([4.2, 3.1])
+    grads = jax.jit(jax.vmap(jax.grad(lambda a, r: f(a, r, 4), (0, 1))))(batch, radii)
+    unbricked = jax.jit(jax.grad(f, (0, 1)), static_argnums=2)
+    for i in range(2):
+        want = unbricked(batch[i], radii[i], None)
+        np.testing.assert_allclose(np.asarray(grads[0][i]), np.asarray(want[0]), atol=1e-12)
+        np.testing.assert_allclose(float(grads[1][i]), float(want[1]), rtol=1e-12)
 
 
 @pytest.mark.slow

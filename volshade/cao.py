@@ -36,14 +36,21 @@ References:
 import functools
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jax import lax
 
 from . import _checks
 from ._types import ArrayLike, Float, Volume
 from .clip import Clip, _checked, _clip, _removed, _voxel_distances, _within_reach, affected_mask
-from .lao import _MAX_ACTIVE_FRACTION, _bricked, _bricks_holding, _marchers, _prepare, _unoccluded
+from .lao import (
+    _MAX_ACTIVE_FRACTION,
+    _bricked,
+    _bricks_holding,
+    _marchers,
+    _one_at_a_time,
+    _prepare,
+    _unoccluded,
+)
 
 _WHERE = "volshade.contextual_ao"
 
@@ -125,30 +132,6 @@ def _contextual(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, s
     one = functools.partial(_contextual_one, pad=pad, samples=samples, correction=correction,
                             brick_size=brick_size, max_active=max_active)
     return _one_at_a_time(one)(alpha, unclipped, clip, dirs, weights, radius, offset)
-
-
-def _one_at_a_time(fn):
-    """``fn``, batched under ``jax.vmap`` by a loop over the batch, in its values and in
-    its reverse-mode gradient: each element (a pose of the clip) keeps its own
-    ``lax.cond``s, so it marches its own bricks only. ``vmap`` of a ``lax.cond`` with a
-    batched predicate runs both branches: every pose would march the whole volume as
-    well as its bricks. The backward pass runs ``fn`` again for its residuals
-    (``jax.vjp``'s residuals are a pytree whose structure a loop cannot carry): the
-    gradient of one pose with its unclipped LAO took 0.40-0.42 s instead of 0.38 s
-    (64^3 shells, 16 rays of 16 samples, float32, 2 CPU cores)."""
-    forward = jax.custom_batching.sequential_vmap(fn)
-    backward = jax.custom_batching.sequential_vmap(
-        lambda args, g: jax.vjp(fn, *args)[1](g))
-
-    @jax.custom_vjp
-    def wrapped(*args):
-        return forward(*args)
-
-    def wrapped_fwd(*args):
-        return forward(*args), args
-
-    wrapped.defvjp(wrapped_fwd, backward)
-    return wrapped
 
 
 def _contextual_one(alpha, unclipped, clip, dirs, weights, radius, offset, *, pad, samples,

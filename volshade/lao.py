@@ -65,7 +65,8 @@ been timed on a GPU (``python -m benchmarks.run lao_pallas``).
 **Bricks** (``brick_size``): bricks with no opacity within reach get AO = 1 and
 are not marched; the active ones are compacted and marched in groups, ``vmap``-ped
 over their padded windows. When more than half are active the plain march is
-used instead (``lax.cond``; under ``vmap`` both branches run). The skipped
+used instead (``lax.cond``; under ``vmap`` the batch runs as a loop, so that each
+element takes its own branch and skips its own bricks). The skipped
 bricks' gradient w.r.t. the opacity is not zero (opacity added near an empty
 brick would darken it); at zero opacity it is a fixed kernel, applied in the
 backward pass as one FFT convolution, so bricked gradients equal unbricked ones.
@@ -848,19 +849,50 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
                                           brick=brick_size)
         return 1 - total / samples
 
-    march, dense = _marchers(pad, dirs, weights, radius, offset, samples, correction)
     if brick_size is None:
-        return dense(alpha)
+        return _marchers(pad, dirs, weights, radius, offset, samples, correction)[1](alpha)
 
-    def sparse(alpha):
-        ao, skipped = _bricked(alpha, active, pad, brick_size, march)
-        return ao + _skipped_gradient(pad, samples, correction, skipped, alpha, dirs,
-                                      weights, radius, offset)
+    def bricked(alpha, dirs, weights, radius, offset):
+        march, dense = _marchers(pad, dirs, weights, radius, offset, samples, correction)
 
-    # grouped bricks cost about 1.7x the plain march per brick (measured on CPU), so
-    # they pay only when well under 60% of them are active: the cut is at half
-    active = _active_bricks(alpha, pad, brick_size)
-    return lax.cond(jnp.mean(active) <= max_active, sparse, dense, alpha)
+        def sparse(alpha):
+            ao, skipped = _bricked(alpha, active, pad, brick_size, march)
+            return ao + _skipped_gradient(pad, samples, correction, skipped, alpha, dirs,
+                                          weights, radius, offset)
+
+        # grouped bricks cost about 1.7x the plain march per brick (measured on CPU), so
+        # they pay only when well under 60% of them are active: the cut is at half
+        active = _active_bricks(alpha, pad, brick_size)
+        return lax.cond(jnp.mean(active) <= max_active, sparse, dense, alpha)
+
+    return _one_at_a_time(bricked)(alpha, dirs, weights, radius, offset)
+
+
+def _one_at_a_time(fn):
+    """``fn``, batched under ``jax.vmap`` by a loop over the batch, in its values and in
+    its reverse-mode gradient, so that each element (a volume, a radius, a pose of a
+    clip) keeps its own ``lax.cond``s and marches only its own active bricks: ``vmap``
+    of a ``lax.cond`` with a batched predicate runs both branches, the plain march of
+    the whole volume as well as the bricks. The backward pass runs ``fn`` again for
+    its residuals (``jax.vjp``'s residuals are a pytree whose structure a loop cannot
+    carry). Measured on 2 CPU cores, float32, 16 rays of 16 samples, R = 8, bricks of
+    16: three sparse 96^3 volumes vmapped took 0.06 s instead of 0.49 s (0.20 s
+    unbricked), and the forward pass and gradient of one 0.39-0.40 s instead of 0.34 s
+    (``python -m benchmarks.run lao --quick``); contextual AO's gradient at one pose,
+    its unclipped LAO included (64^3 shells), 0.40-0.42 s instead of 0.38 s."""
+    forward = jax.custom_batching.sequential_vmap(fn)
+    backward = jax.custom_batching.sequential_vmap(
+        lambda args, g: jax.vjp(fn, *args)[1](g))
+
+    @jax.custom_vjp
+    def wrapped(*args):
+        return forward(*args)
+
+    def wrapped_fwd(*args):
+        return forward(*args), args
+
+    wrapped.defvjp(wrapped_fwd, backward)
+    return wrapped
 
 
 class LocalAmbientOcclusion(eqx.Module):
