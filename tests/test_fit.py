@@ -210,14 +210,18 @@ def test_gauss_newton_line_search_on_its_own():
     assert not abs(float(sol.value[0])) < 1e3  # far out, or NaN
 
 
-def test_forward_mode_through_lao_from_its_reverse_mode():
+@pytest.mark.parametrize("brick_size", [None, 2])
+def test_forward_mode_through_lao_from_its_reverse_mode(brick_size):
     # LAO's custom VJP has no forward mode; the wrapper's JVP is the transposed VJP,
-    # checked against the Jacobian from reverse mode and against finite differences
+    # checked against the Jacobian from reverse mode and against finite differences.
+    # With bricks the march runs one batch element at a time under a custom VJP of its
+    # own (as contextual AO's does), whose backward pass must transpose
     alpha = jnp.zeros((6, 6, 6)).at[2:4, 2:4, 2:4].set(0.5)
 
     def f(a, y):
         return vs.lao(a * y[1], directions=vs.directions.fibonacci(4), radius=y[0],
-                      offset=0.5, samples=4, max_radius=4.0)[2:4, 1:5, 3]
+                      offset=0.5, samples=4, max_radius=4.0,
+                      brick_size=brick_size)[2:4, 1:5, 3]
 
     y, dy = jnp.asarray([2.5, 0.8]), jnp.asarray([0.3, -1.1])
     with pytest.raises(TypeError, match="forward-mode"):

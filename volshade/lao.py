@@ -869,20 +869,21 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
 
 
 def _one_at_a_time(fn):
-    """``fn``, batched under ``jax.vmap`` by a loop over the batch, in its values and in
-    its reverse-mode gradient, so that each element (a volume, a radius, a pose of a
-    clip) keeps its own ``lax.cond``s and marches only its own active bricks: ``vmap``
-    of a ``lax.cond`` with a batched predicate runs both branches, the plain march of
-    the whole volume as well as the bricks. The backward pass runs ``fn`` again for
-    its residuals (``jax.vjp``'s residuals are a pytree whose structure a loop cannot
-    carry). Measured on 2 CPU cores, float32, 16 rays of 16 samples, R = 8, bricks of
+    """``fn``, batched under ``jax.vmap`` by a loop over the batch, so that each
+    element (a volume, a radius, a pose of a clip) keeps its own ``lax.cond``s and
+    marches only its own active bricks: ``vmap`` of a ``lax.cond`` with a batched
+    predicate runs both branches, the plain march of the whole volume as well as the
+    bricks. Measured on 2 CPU cores, float32, 16 rays of 16 samples, R = 8, bricks of
     16: three sparse 96^3 volumes vmapped took 0.06 s instead of 0.49 s (0.20 s
-    unbricked), and the forward pass and gradient of one 0.39-0.40 s instead of 0.34 s
-    (``python -m benchmarks.run lao --quick``); contextual AO's gradient at one pose,
-    its unclipped LAO included (64^3 shells), 0.40-0.42 s instead of 0.38 s."""
+    unbricked; ``python -m benchmarks.run lao --quick``).
+
+    The loop (``jax.custom_batching.sequential_vmap``) has no derivative of its own, so
+    ``fn``'s reverse-mode gradient is given as a custom VJP that runs ``fn`` again for
+    its residuals, batched as usual (both branches under ``vmap``): a loop there would
+    have no transpose, which forward mode built from the VJP (``vs.fit``) needs. The
+    forward pass and gradient of one bricked sparse 96^3 volume took 0.39-0.40 s
+    instead of 0.34 s."""
     forward = jax.custom_batching.sequential_vmap(fn)
-    backward = jax.custom_batching.sequential_vmap(
-        lambda args, g: jax.vjp(fn, *args)[1](g))
 
     @jax.custom_vjp
     def wrapped(*args):
@@ -891,7 +892,10 @@ def _one_at_a_time(fn):
     def wrapped_fwd(*args):
         return forward(*args), args
 
-    wrapped.defvjp(wrapped_fwd, backward)
+    def wrapped_bwd(args, g):
+        return jax.vjp(fn, *args)[1](g)
+
+    wrapped.defvjp(wrapped_fwd, wrapped_bwd)
     return wrapped
 
 
