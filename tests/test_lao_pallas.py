@@ -327,8 +327,9 @@ _TRITON_CALLS = ("__gpu$xla.gpu.triton", "triton_kernel_call_ffi")
 @pytest.mark.parametrize("launch", pallas.LAUNCHES)
 def test_kernels_lower_to_triton(launch):
     """The four kernels (forward; chunk starts, cotangents and adjoint of the VJP)
-    lower to Triton for every launch the GPU benchmark times, vmapped too, and not
-    to the interpreter. Triton's compilation to PTX happens on a GPU, when XLA
+    lower to Triton for every launch the GPU benchmark times, vmapped too with the
+    default launch (a batch adds a grid axis, whatever the tiles), and not to the
+    interpreter. Triton's compilation to PTX happens on a GPU, when XLA
     compiles (``benchmarks/gpu.py``), or here on jaxlib > 0.10.2 with CUDA."""
     dirs = vdirs.fibonacci(6).astype(jnp.float32)
 
@@ -342,8 +343,9 @@ def test_kernels_lower_to_triton(launch):
     struct = jax.ShapeDtypeStruct
     assert _export_for_cuda(value_and_grad, struct((20, 24, 40), jnp.float32),
                             struct((), jnp.float32)) == 4
-    assert _export_for_cuda(jax.vmap(value_and_grad), struct((2, 20, 24, 40), jnp.float32),
-                            struct((2,), jnp.float32)) == 4
+    if launch == pallas.DEFAULT_LAUNCH:
+        assert _export_for_cuda(jax.vmap(value_and_grad), struct((2, 20, 24, 40), jnp.float32),
+                                struct((2,), jnp.float32)) == 4
 
 
 def test_half_precision_lowers_to_triton():
