@@ -80,7 +80,21 @@ def pytest_unconfigure(config):
         shutil.rmtree(os.environ.pop(_CACHE), ignore_errors=True)
 
 
+def pytest_addoption(parser):
+    parser.addoption("--experiments", action="store_true",
+                     help="also run every experiment script at its small size (about 2 min "
+                          "of CPU; .ci/run does, in a second pytest run)")
+
+
 def pytest_collection_modifyitems(config, items):
+    # the experiments (real data, subprocesses at XLA's default optimisation: 120 s of
+    # CPU, a fifth of the suite's) run when asked for, as CI does
+    if not config.getoption("--experiments"):
+        skip = pytest.mark.skip(reason="an experiment script: run with --experiments "
+                                       "(.ci/run does)")
+        for item in items:
+            if item.get_closest_marker("experiment"):
+                item.add_marker(skip)
     # the slow tests first (the sort is stable): pytest-xdist hands tests out in
     # collection order, and a long test started last keeps one core busy alone
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)

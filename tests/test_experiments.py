@@ -1,4 +1,6 @@
-"""Every experiment runs at its small size (VOLSHADE_QUICK=1), so none can rot.
+"""Every experiment runs at its small size (VOLSHADE_QUICK=1), so none can rot: with
+``pytest --experiments`` (``.ci/run`` runs them so, after the suite), since they take
+about 120 s of CPU, a fifth of the suite's time on 2 cores.
 
 Each runs as a user runs it: a fresh Python process (float32, XLA's default
 optimisation: the suite's compile-time flags would make their timed loops several
@@ -31,6 +33,7 @@ NEEDS_DATA = {"contextual_ao_head.py", "feature_ao_brain.py", "fit_head.py"}
 
 
 @pytest.mark.slow
+@pytest.mark.experiment
 @pytest.mark.parametrize("script", sorted(CASES))
 def test_experiment_runs_and_writes_its_results(script, tmp_path, request):
     # the checkout's volshade, installed or not
