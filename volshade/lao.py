@@ -850,7 +850,8 @@ def _lao(alpha, dirs, weights, radius, offset, *, pad, samples, correction, bric
         return 1 - total / samples
 
     if brick_size is None:
-        return _marchers(pad, dirs, weights, radius, offset, samples, correction)[1](alpha)
+        _, dense = _marchers(pad, dirs, weights, radius, offset, samples, correction)
+        return dense(alpha)
 
     def bricked(alpha, dirs, weights, radius, offset):
         march, dense = _marchers(pad, dirs, weights, radius, offset, samples, correction)
