@@ -198,6 +198,17 @@ def test_nested_lists_become_arrays():
     (lambda: vs.render(vs.Scene(volume=VOL, transfer=TF, shading="phong",
                                 phong=vs.Phong(ambient=[0.2, 0.4])), CAM), ValueError,
      "Phong: `ambient` must be a scalar to shade, got shape \\(2,\\); .* jax.vmap"),
+    # None and ragged lists: jnp.asarray raises a ValueError naming neither the argument
+    # nor the fix (found by a review)
+    (lambda: vs.Scene(volume=[[[0.0]], [[0.0, 1.0]]], transfer=TF), TypeError,
+     "volshade.Scene: `volume` must be an array of numbers .* got list"),
+    (lambda: vs.obscurance(None, directions=icosphere(0), d_max=2.0), TypeError,
+     "obscurance: `density` must be an array of numbers .* got NoneType"),
+    (lambda: vs.saliency(None), TypeError, "saliency: `obscurance` must be an array"),
+    (lambda: vs.threshold(DENSITY, None, 1.0), TypeError, "threshold: `low` must be an array"),
+    (lambda: vs.contextual_ao(DENSITY, clip=vs.SphereClip(center=(4.0, 4.0, 4.0), radius=1.0),
+                              unclipped=None, directions=3, radius=2.0), TypeError,
+     "contextual_ao: `unclipped` must be an array"),
 ])
 def test_bad_values_are_refused_by_name(build, exc, match):
     # at construction where the module can tell, else where the value is used

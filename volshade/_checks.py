@@ -23,8 +23,9 @@ def as_float_array(x: Any, name: str, where: str) -> Array:
     """``x`` as a JAX array of a floating dtype (integers are promoted, other dtypes refused)."""
     try:
         arr = jnp.asarray(x)
-    except TypeError as err:
-        raise TypeError(f"{where}: `{name}` must be an array, got {type(x).__name__}.") from err
+    except (TypeError, ValueError) as err:  # ValueError: None, a ragged nested list
+        raise TypeError(f"{where}: `{name}` must be an array of numbers (or a rectangular "
+                        f"nested list of them), got {type(x).__name__}.") from err
     if jnp.issubdtype(arr.dtype, jnp.floating):
         return arr
     if jnp.issubdtype(arr.dtype, jnp.integer) or arr.dtype == jnp.bool_:
@@ -89,6 +90,16 @@ def array_module(*arrays: Any):
     if any(isinstance(x, jax.core.Tracer) or np.size(x) > _HOST_CHECK_SIZE for x in leaves):
         return jnp
     return np
+
+
+def reading(result: Array, *checked: Any) -> Array:
+    """``result``, made to read every array leaf of ``checked``. Under jit a result that
+    ignores a checked input lets XLA prune that input's run-time check (a NaN input
+    would pass unseen). Each input is multiplied by 0 before it is summed (a sum of
+    large finite inputs could overflow), so the value and gradient are unchanged."""
+    arrays = jax.tree_util.tree_leaves(eqx.filter(checked, eqx.is_array))
+    read = sum(jnp.sum(0 * x) for x in arrays)
+    return result + jnp.asarray(read).astype(result.dtype)
 
 
 def for_check(*arrays: Any) -> tuple:

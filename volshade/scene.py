@@ -86,7 +86,7 @@ def _as_array(volume):
         return volume
     try:
         return jnp.asarray(volume)
-    except TypeError:
+    except (TypeError, ValueError):  # ValueError: a ragged nested list
         return volume  # refused by __check_init__, with the argument's name
 
 
