@@ -340,6 +340,17 @@ def test_scene_renders_feature_ao_as_its_ambient_volume():
 # ----------------------------------------------------------------- bad input
 
 
+@pytest.mark.parametrize("merge", sorted(MERGES))
+def test_merge_refuses_bad_opacities_under_jit(merge):
+    # "max" ignores the opacities: their run-time check was pruned under jit (found by
+    # a review: a NaN opacity merged without an error)
+    ao = jnp.full((2, 4, 4, 4), 0.5)
+    merged = eqx.filter_jit(lambda a, o: vs.merge_feature_ao(a, o, merge=merge))
+    for bad in (jnp.nan, 2.0):
+        with pytest.raises(Exception, match="merge_feature_ao: `opacities`"):
+            jax.block_until_ready(merged(ao, ao.at[0, 1, 2, 3].set(bad)))
+
+
 def test_bad_inputs_raise_clear_errors():
     vol = _shells(8)
     kw = dict(directions=DIRS, radius=3.0, samples=4)

@@ -209,7 +209,9 @@ def merge_feature_ao(
     # half precision is merged in float32: the neighbourhood mean's derivative, of order
     # 1 / (summed opacity)^2, overflows float16 below a sum of 4e-3
     work = _checks.at_least_float32(ao)
-    return _merge(work, opacities.astype(work.dtype), merge).astype(ao.dtype)
+    # "max" ignores the opacities: read them, or their run-time check is pruned under jit
+    merged = _checks.reading(_merge(work, opacities.astype(work.dtype), merge), opacities)
+    return merged.astype(ao.dtype)
 
 
 @functools.partial(jax.jit, static_argnames="merge")

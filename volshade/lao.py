@@ -825,13 +825,9 @@ def lao(
 
 def _unoccluded(alpha: Array, *checked: Any) -> Array:
     """AO = 1 everywhere, for ``samples = 1`` (eq. 3 with M = 1 is a single term with an
-    empty product: no sample is taken), computed from ``alpha`` and the array leaves of
-    ``checked``: under jit a result that ignored the checked inputs would let XLA prune
-    their run-time checks (a NaN opacity would give AO = 1). Each input is multiplied by
-    0 before it is summed: a sum of large finite inputs could overflow, and 0 * inf is
-    NaN."""
-    read = sum(jnp.sum(0 * x) for x in jax.tree_util.tree_leaves(eqx.filter(checked, eqx.is_array)))
-    return jnp.ones_like(alpha) + (0 * alpha + read).astype(alpha.dtype)
+    empty product: no sample is taken), reading ``alpha`` and the arrays of ``checked``
+    so that their run-time checks survive jit (:func:`volshade._checks.reading`)."""
+    return _checks.reading(jnp.ones_like(alpha), alpha, *checked)
 
 
 @eqx.filter_jit
