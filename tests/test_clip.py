@@ -206,3 +206,25 @@ def test_affected_mask_covers_the_rounding_of_large_float32_clips():
         within = phi < radius + np.sqrt(3)
         assert 0 < within.sum() < within.size
         assert np.all(affected[within]), radius
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_signed_distance_refuses_bad_leaves_and_keeps_nan_points_nan(name):
+    # found by a review: the sphere's and torus's square root took a NaN coordinate to
+    # a finite "inside" distance, the public method checked no leaf, and a centre of the
+    # wrong shape set with tree_at broadcast against the grid
+    clip = SHAPES[name]
+    phi = clip.signed_distance(jnp.asarray([[jnp.nan, 8.0, 8.0], [8.0, 8.0, 8.0]]))
+    assert np.isnan(phi[0]) and np.isfinite(phi[1])
+    with pytest.raises(ValueError, match="finite"):
+        eqx.tree_at(lambda c: c.center, clip, jnp.full(3, jnp.nan)).signed_distance(
+            jnp.zeros(3))
+    with pytest.raises(Exception, match="finite"):
+        jax.block_until_ready(eqx.filter_jit(lambda c, p: c.signed_distance(p))(
+            eqx.tree_at(lambda c: c.center, clip, jnp.full(3, jnp.nan)), jnp.zeros(3)))
+    with pytest.raises(ValueError, match=r"`points` must have shape \(\.\.\., 3\)"):
+        clip.signed_distance(jnp.zeros((4, 2)))
+    short = eqx.tree_at(lambda c: c.center, clip, jnp.asarray([2.0]))
+    for use in (lambda c: vs.clip_mask((5, 5, 5), c), lambda c: c.signed_distance(jnp.zeros(3))):
+        with pytest.raises(ValueError, match=r"`center` must be 3 numbers .* got shape \(1,\)"):
+            use(short)

@@ -94,11 +94,12 @@ def log1m(alpha: ArrayLike) -> Array:
 
 
 def safe_sqrt(x: ArrayLike) -> Array:
-    """``sqrt(x)`` for ``x > 0`` and 0 with zero gradient for ``x <= 0``."""
+    """``sqrt(x)`` for ``x > 0`` and 0 with zero gradient for ``x <= 0``; NaN stays NaN
+    (a NaN coordinate would otherwise come out as a finite distance)."""
     x = jnp.asarray(x)
     positive = x > 0
     safe_x = jnp.where(positive, x, jnp.ones_like(x))
-    return jnp.where(positive, jnp.sqrt(safe_x), jnp.zeros_like(x))
+    return jnp.where(positive, jnp.sqrt(safe_x), jnp.where(x <= 0, jnp.zeros_like(x), x))
 
 
 def safe_norm(x: ArrayLike, axis: int = -1, keepdims: bool = False) -> Array:

@@ -122,9 +122,14 @@ class Clip(eqx.Module):
     def signed_distance(self, points: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
         r"""Exact Euclidean signed distance $\phi$ (voxels) of ``points`` ``(..., 3)``
         to the shape's surface, negative inside."""
-        points = jnp.asarray(points)
-        local = (points - _lead(self.center, points)) @ self.rotation
-        return self._local_distance(local[..., 0], local[..., 1], local[..., 2])
+        where = f"volshade.{type(self).__name__}.signed_distance"
+        points = _checks.as_float_array(points, "points", where)
+        if points.ndim < 1 or points.shape[-1] != 3:
+            raise ValueError(f"{where}: `points` must have shape (..., 3) (d, h, w in voxels), "
+                             f"got {points.shape}.")
+        clip = _checked(self)
+        local = (points - _lead(clip.center, points)) @ clip.rotation
+        return clip._local_distance(local[..., 0], local[..., 1], local[..., 2])
 
     @abc.abstractmethod
     def _local_distance(self, u: Array, v: Array, w: Array) -> Array:
@@ -248,6 +253,13 @@ def _checked(clip: Clip) -> Clip:
     one clip (built with a batch axis, a clip is for vmap: its sizes would broadcast
     against the voxel grid)."""
     where = f"volshade.{type(clip).__name__}"
+    # leaves set with eqx.tree_at skip the constructor's shape checks
+    for name, shape, what in (("center", (3,), "3 numbers (d, h, w) in voxels"),
+                              ("rotation", (3, 3), "a 3x3 rotation matrix")):
+        if jnp.shape(getattr(clip, name)) != shape:
+            raise ValueError(f"{where}: `{name}` must be {what}, got shape "
+                             f"{jnp.shape(getattr(clip, name))}; for a batch of clips, "
+                             f"jax.vmap over them.")
     for name in clip.sizes:
         if jnp.shape(getattr(clip, name)) != clip.size_shape:
             raise ValueError(f"{where}: `{name}` must have shape {clip.size_shape} (voxels) "
