@@ -9,7 +9,7 @@ from helpers import check_grad_fd, tol
 from reference_gradient import regression_gradient_reference
 
 from volshade.directions import icosphere
-from volshade.gradient import regression_gradient
+from volshade.gradient import gradient_magnitude, regression_gradient
 from volshade.obscurance import _direction_array, _static_dirs, obscurance
 from volshade.saliency import (
     SaliencyModulation,
@@ -99,6 +99,23 @@ def test_saliency_range_and_rgb_norm():
     mag = np.sqrt(sum(np.sum(regression_gradient_reference(o[..., c]) ** 2, -1)
                       for c in range(3)))
     np.testing.assert_allclose(np.asarray(s), mag / mag.max(), rtol=1e-10)
+
+
+@pytest.mark.parametrize("scale", [1e21, 1e-25])
+def test_saliency_does_not_depend_on_the_scale_of_the_field(scale):
+    # found by a review: the squared components overflowed (NaN) or underflowed (0) in
+    # float32, though the scaled saliency is invariant to the field's scale
+    o = jnp.asarray(np.random.default_rng(1).random((8, 8, 8)), jnp.float32)
+    s = saliency(o)
+    got = saliency(o * jnp.float32(scale))
+    np.testing.assert_allclose(np.asarray(got), np.asarray(s), rtol=1e-5, atol=1e-6)
+    grad = jax.grad(lambda o: jnp.sum(saliency(o) ** 2))
+    # the saliency of c o is that of o, so its gradient there is the gradient at o over c
+    np.testing.assert_allclose(np.asarray(grad(o * jnp.float32(scale))) * scale,
+                               np.asarray(grad(o)), rtol=1e-4, atol=1e-5)
+    big = jnp.asarray([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]], jnp.float32) * jnp.float32(scale)
+    np.testing.assert_allclose(np.asarray(gradient_magnitude(big)),
+                               [5 * scale, 0.0], rtol=1e-6)
 
 
 def test_saliency_grad_and_jit():

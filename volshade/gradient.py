@@ -24,6 +24,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from . import _checks
 from ._numerics import safe_div, safe_norm
@@ -146,6 +147,10 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
     return jnp.stack(components, axis=-1)
 
 
+def _nonzero(x: Array) -> Array:
+    return jnp.where(x > 0, x, jnp.ones_like(x))
+
+
 def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = False
                        ) -> Float[Array, "*batch"]:
     """Euclidean norm over the last axis, with a zero (not NaN) derivative at 0.
@@ -156,5 +161,14 @@ def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = Fal
     last axis may hold several stacked gradients (e.g. one per colour channel).
     """
     scaled = _checks.flag(scaled, "scaled", "volshade.gradient.gradient_magnitude")
-    magnitude = safe_norm(gradient, axis=-1)
+    if scaled:
+        # the field divided by its largest component first, so that neither the
+        # magnitudes nor the quotient's derivative (m / M^2) leave the float range; the
+        # scaled magnitude does not depend on that factor, which is held constant
+        gradient = gradient / _nonzero(lax.stop_gradient(jnp.max(jnp.abs(gradient))))
+    # |g| = p |g / p| with p the largest |component|: the squares of large components
+    # would overflow (float32: above 1e19) and those of small ones underflow. |g| is
+    # homogeneous, so holding p constant leaves its derivative exact
+    peak = _nonzero(lax.stop_gradient(jnp.max(jnp.abs(gradient), axis=-1, keepdims=True)))
+    magnitude = peak[..., 0] * safe_norm(gradient / peak, axis=-1)
     return safe_div(magnitude, jnp.max(magnitude)) if scaled else magnitude
