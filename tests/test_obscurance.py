@@ -1,6 +1,7 @@
 """Obscurances (Ruiz et al. 2008): exact agreement with a per-voxel march, corner phantom
 properties, display controls, jit / vmap / grad and input errors."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -173,6 +174,33 @@ def test_user_callable_rho_and_dtype():
                             colors=jnp.ones((8, 8, 8, 3), jnp.float32))
     np.testing.assert_allclose(np.asarray(rgb_square), np.repeat(want[..., None], 3, -1), rtol=0,
                                atol=1e-6)
+
+
+class _PowerRho(eqx.Module):
+    """rho = (d / d_max)^p with a differentiable exponent."""
+
+    p: jax.Array
+
+    def __call__(self, d, d_max):
+        return (d / d_max) ** self.p
+
+
+@pytest.mark.filterwarnings("ignore:A JAX array is being set as static")  # equinox's, first
+def test_rho_with_array_leaves_is_traced_and_gets_gradients():
+    # found by a review: a rho Module (unhashable) crashed as jit's static argument
+    vol = jnp.asarray(random_volume((8, 8, 8), 3))
+    kw = dict(directions=DIRS12, d_max=4.0)
+    np.testing.assert_array_equal(obscurance(vol, rho=_PowerRho(jnp.asarray(0.5)), **kw),
+                                  obscurance(vol, rho="sqrt", **kw))
+
+    def total(p):
+        return jnp.sum(obscurance(vol, rho=_PowerRho(p), **kw))
+
+    check_grad_fd(jax.jit(total), jnp.asarray(0.7))
+    with pytest.raises(TypeError, match="`rho` is static here .* must be hashable"):
+        ObscuranceParams(rho=_PowerRho(jnp.asarray(0.5)))
+    with pytest.raises(TypeError, match="`rho` is static here"):
+        vs.SaliencyModulation(rho=_PowerRho(jnp.asarray(0.5)))
 
 
 def test_parameter_modules_take_a_callable_rho():

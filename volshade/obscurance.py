@@ -67,7 +67,7 @@ import functools
 import math
 import numbers
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -434,10 +434,22 @@ def _gaussian_smooth(volume: Float[Array, "D H W"], sigma: float) -> Float[Array
     return volume
 
 
-def _rho_fn(rho: str | Callable, where: str) -> Callable:
-    if callable(rho):
-        return rho
-    return _checks.option(rho, RHO_FUNCTIONS, "rho", where)
+def _rho_fn(rho: str | Callable, where: str, *, static: bool = False) -> Callable:
+    """The rho function named or given. ``static``: for a Module's static field, which
+    compiles it in and must hash it (a callable holding arrays cannot be)."""
+    if not callable(rho):
+        return _checks.option(rho, RHO_FUNCTIONS, "rho", where)
+    if static:
+        try:
+            hash(rho)
+        except TypeError as err:
+            raise TypeError(
+                f"{where}: `rho` is static here (compiled in), so it must be hashable; "
+                f"{type(rho).__name__} is not (a callable holding arrays, such as an "
+                f"equinox Module with a parameter, cannot be). Pass a function, or "
+                f"compute vs.obscurance(..., rho=...), which traces such a rho, and use "
+                f"it as the scene's ambient_volume.") from err
+    return rho
 
 
 def occluder_distances(
@@ -538,7 +550,9 @@ def obscurance(
             constant).
         rho: ``"ao"``, ``"linear"``, ``"exponential"``, ``"sqrt"`` (section 3.2, see
             :data:`RHO_FUNCTIONS`) or a callable ``rho(d, d_max)`` evaluated
-            elementwise on occluded directions ($0 < d \le d_{max}$).
+            elementwise on occluded directions ($0 < d \le d_{max}$); the array
+            leaves of a callable pytree (an equinox Module with a parameter) are
+            traced, so they get gradients.
         colors: optional ``(D, H, W, 3)`` diffuse colours $R$ in $[0, 1]$ (e.g. the
             transfer function's colour of each voxel); turns on colour bleeding.
         ambient: ``(3,)`` colour in $[0, 1]$ of unoccluded directions, for colour
@@ -600,13 +614,39 @@ def obscurance(
     elif ambient is not None:
         raise ValueError(f"{where}: `ambient` is the colour of unoccluded directions for "
                          f"colour bleeding and needs `colors`; pass `colors` or drop it.")
-    return _obscurance(density, d_max, colors, ambient if bleeding else None,
-                       dirs=_static_dirs(dirs), rho_fn=rho_fn, columns_last=_columns_last())
+    # a rho with array leaves (an equinox Module with a parameter) is traced through
+    # them, so they get gradients; the rest of it is compiled in
+    rho_arrays, rho_rest = eqx.partition(rho_fn, eqx.is_array)
+    return _obscurance(density, d_max, colors, ambient if bleeding else None, rho_arrays,
+                       dirs=_static_dirs(dirs), rho_rest=_Hashable(rho_rest),
+                       columns_last=_columns_last())
 
 
-@functools.partial(jax.jit, static_argnames=("dirs", "rho_fn", "columns_last"))
+class _Hashable:
+    """A static argument of jit: hashed and compared as its value where that can be
+    hashed, else by identity (each such object compiles its own program)."""
+
+    def __init__(self, value: Any):
+        self.value = value
+        try:
+            self._key = (True, hash(value))
+        except TypeError:
+            self._key = (False, id(value))
+
+    def __hash__(self) -> int:
+        return hash(self._key)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, _Hashable) or self._key != other._key:
+            return False
+        return self.value == other.value if self._key[0] else self.value is other.value
+
+
+@functools.partial(jax.jit, static_argnames=("dirs", "rho_rest", "columns_last"))
 def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Array | None,
-                *, dirs: tuple, rho_fn: Callable, columns_last: bool) -> Array:
+                rho_arrays: Any, *, dirs: tuple, rho_rest: _Hashable,
+                columns_last: bool) -> Array:
+    rho_fn = eqx.combine(rho_arrays, rho_rest.value)
     dirs = np.asarray(dirs)
     dtype = density.dtype
     bleeding = colors is not None
@@ -887,7 +927,7 @@ class ObscuranceParams(eqx.Module):
             0.6/0.7).
         rho: name of a rho function (:data:`RHO_FUNCTIONS`) or a callable
             ``rho(d, d_max)``, as for :func:`obscurance` (static: a new function
-            compiles again).
+            compiles again; it must be hashable, so one holding arrays is refused).
         level: icosphere level of the directions, 0 to 4: 0, 1, 2 for the paper's 12,
             42, 162 (3 and 4 give 642 and 2562).
         color_bleeding: tint by the occluders' transfer-function colours (eq. 3): a
@@ -935,7 +975,7 @@ class ObscuranceParams(eqx.Module):
     def __check_init__(self):
         where = "volshade.ObscuranceParams"
         _check_smoothing(self.smoothing, where)
-        _rho_fn(self.rho, where)
+        _rho_fn(self.rho, where, static=True)
         if self.density not in _DENSITIES:
             raise ValueError(f"{where}: unknown density {self.density!r}; valid values are "
                              f"{', '.join(map(repr, _DENSITIES))}.")

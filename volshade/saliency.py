@@ -487,7 +487,7 @@ def opacity_factor(
 def _saliency_volume(saliency, where: str) -> Array:
     """``saliency`` checked as a ``(D, H, W)`` volume of finite values in [0, 1]."""
     return _checks.volume(saliency, "saliency", where, unit_range=True,
-                          hint="(a scaled saliency: `volshade.saliency.saliency` divides "
+                          hint="(a scaled saliency: `vs.saliency` divides "
                                "by its maximum)")
 
 
@@ -558,7 +558,8 @@ class SaliencyModulation(eqx.Module):
         d_max: obscurance distance in voxels (default 32).
         rho: the obscurance's rho: a :data:`volshade.obscurance.RHO_FUNCTIONS` name
             (default ``"sqrt"``) or a callable ``rho(d, d_max)``, as for
-            :func:`~volshade.obscurance.obscurance`.
+            :func:`~volshade.obscurance.obscurance` (static: hashable, so one holding
+            arrays is refused).
         level: icosphere level of the obscurance directions, 0 to 4 (default 1: 42).
         size: regression neighbourhood of the saliency, 5 (default) or 3.
         multiply: multiply the opacity by the saliency (default True).
@@ -591,7 +592,7 @@ class SaliencyModulation(eqx.Module):
     def __check_init__(self):
         where = "volshade.SaliencyModulation"
         _check_smoothing(self.smoothing, where)
-        _rho_fn(self.rho, where)
+        _rho_fn(self.rho, where, static=True)
         _check_level(self.level, where)
         _check_size(self.size, where)
         _boost_top(self.boost_top, where)
