@@ -198,6 +198,10 @@ def test_nested_lists_become_arrays():
     (lambda: vs.render(vs.Scene(volume=VOL, transfer=TF, shading="phong",
                                 phong=vs.Phong(ambient=[0.2, 0.4])), CAM), ValueError,
      "Phong: `ambient` must be a scalar to shade, got shape \\(2,\\); .* jax.vmap"),
+    (lambda: vs.threshold(DENSITY, False, True), TypeError,
+     "threshold: `low` must be a number, got the bool False"),
+    (lambda: vs.threshold(DENSITY, 0.2, jnp.ones(2)), ValueError,
+     r"threshold: `high` must be a scalar, got shape \(2,\)"),
     # None and ragged lists: jnp.asarray raises a ValueError naming neither the argument
     # nor the fix (found by a review)
     (lambda: vs.Scene(volume=[[[0.0]], [[0.0, 1.0]]], transfer=TF), TypeError,
