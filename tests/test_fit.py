@@ -5,6 +5,7 @@ JVP rule built from their VJP, which least-squares solvers and minimisers use.
 """
 
 import re
+import sys
 
 import equinox as eqx
 import jax
@@ -172,6 +173,30 @@ def test_losses_are_the_mean_squared_differences_of_the_renders(solver):
     np.testing.assert_allclose(float(result.initial_loss), loss(start), rtol=1e-12)
     np.testing.assert_allclose(float(result.loss), loss(result.scene), rtol=1e-12)
     assert 0 < float(result.loss) < float(result.initial_loss)
+
+
+def _background_importance_scene():
+    vol = vs.data.phantom("shells", shape=8).astype(jnp.float64)
+    scene = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"),
+                     composition="importance",
+                     importance=vs.Importance(intensity=2.0, background=-jnp.inf))
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(4, 4))
+    return scene, cam, vs.render(eqx.tree_at(lambda s: s.importance.intensity, scene, 1.0), cam)
+
+
+def test_a_minus_inf_start_is_refused_and_no_step_reports_the_initial_loss(monkeypatch):
+    # found by a review: -inf, legal for a background importance, reached optimistix,
+    # which stopped before a first step ("non-finite values", naming nothing), and the
+    # fit read its loss from the solver's state, still zeros: 0.0
+    scene, cam, target = _background_importance_scene()
+    with pytest.raises(ValueError, match="initial value of 'importance.background' .* must be "
+                                         "finite to be fitted"):
+        vs.fit(scene, cam, target, params=["importance.background"])
+    # past that check, the solver takes no step: the loss is the start's, not zeros
+    monkeypatch.setattr(sys.modules["volshade.fit"], "_from_bounded", lambda x, bounds, path: x)
+    result = vs.fit(scene, cam, target, params=["importance.background"], throw=False)
+    assert int(result.steps) == 0 and result.result != optx.RESULTS.successful
+    assert float(result.loss) == float(result.initial_loss) > 0
 
 
 def _rosenbrock(y, scale):
