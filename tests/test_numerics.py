@@ -114,6 +114,12 @@ def test_safe_pow_at_zero():
     assert float(nm.safe_pow(0.0, 3.0)) == 0.0
     gx, gp = jax.grad(nm.safe_pow, argnums=(0, 1))(0.0, 3.0)
     assert float(gx) == 0.0 and float(gp) == 0.0
+    # one-sided slopes at 0: p 0^(p - 1) is 1 for p = 1 (it was given as 0: found by a
+    # review, with an exponent of 1 on a gradient magnitude of 0)
+    for p, slope in ((1.0, 1.0), (2.5, 0.0)):
+        assert float(jax.grad(nm.safe_pow)(0.0, p)) == slope
+        assert float(jax.grad(nm.safe_pow, argnums=1)(0.0, p)) == 0.0
+    assert float(jax.grad(nm.safe_pow)(-1e-16, 1.0)) == 0.0 == float(nm.safe_pow(-1e-16, 1.0))
     np.testing.assert_allclose(nm.safe_pow(2.0, 3.0), 8.0)
     np.testing.assert_allclose(jax.grad(nm.safe_pow, argnums=1)(2.0, 3.0), 8.0 * np.log(2.0))
 

@@ -157,12 +157,16 @@ def smoothstep(edge0: ArrayLike, edge1: ArrayLike, x: ArrayLike) -> Array:
 
 
 def safe_pow(x: ArrayLike, p: ArrayLike) -> Array:
-    """``x ** p`` for ``x >= 0`` whose gradients stay finite at ``x = 0``.
+    r"""``x ** p`` for ``x >= 0`` whose gradients stay finite at ``x = 0``.
 
-    At ``x = 0`` the value is 0 (for ``p > 0``) and both gradients are 0, where
-    ``jnp.power`` gives ``0 * log(0) = NaN`` for the gradient in ``p``.
+    At ``x = 0`` the value is 0 (for ``p > 0``), where ``jnp.power`` gives
+    ``0 * log(0) = NaN`` for the gradient in ``p``. The gradients there are one-sided:
+    0 in ``p`` and $p\,0^{p-1}$ in ``x``, which is 0 for $p > 1$, 1 for $p = 1$ and
+    infinite for $p < 1$ (given as 0, to stay finite). Below 0 the value is 0.
     """
     x = jnp.asarray(x)
     positive = x > 0
     safe_x = jnp.where(positive, x, jnp.ones_like(x))
-    return jnp.where(positive, jnp.exp(p * jnp.log(safe_x)), jnp.zeros_like(safe_x))
+    zero = jnp.zeros_like(safe_x)
+    at_zero = jnp.where((x == 0) & (jnp.asarray(p) == 1), x, zero)  # x carries the slope 1
+    return jnp.where(positive, jnp.exp(p * jnp.log(safe_x)), at_zero)
