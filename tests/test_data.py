@@ -262,6 +262,19 @@ def test_load_nifti_downsample(tmp_path):
     np.testing.assert_allclose(np.asarray(vol)[1, 2, 0], zyx[2:4, 4:6, 0:2].mean())
     with pytest.raises(ValueError, match="`downsample`"):
         data.load_nifti(path, downsample=0)
+    # partial blocks at the far faces average the voxels they hold (they were padded with
+    # zeros: a uniform 5^3 volume came out 100, 100, 50 along an axis; found by a review)
+    path = _write(tmp_path / "uniform.nii", np.full((5, 5, 7), 100.0, np.float32), np.eye(4))
+    vol, _ = data.load_nifti(path, normalize=False, downsample=2)
+    assert vol.shape == (4, 3, 3)
+    np.testing.assert_allclose(np.asarray(vol), 100.0, rtol=1e-6)
+    vol, _ = data.load_nifti(path, normalize=False, downsample=3)
+    np.testing.assert_allclose(np.asarray(vol), 100.0, rtol=1e-6)
+    arr = np.random.default_rng(0).random((5, 6, 7)).astype(np.float32)
+    vol, _ = data.load_nifti(_write(tmp_path / "rand.nii", arr, np.eye(4)), normalize=False,
+                             downsample=4)
+    np.testing.assert_allclose(np.asarray(vol)[1, 1, 1], np.transpose(arr)[4:, 4:, 4:].mean(),
+                               rtol=1e-6)
 
 
 def test_load_nifti_missing_file(tmp_path):

@@ -320,11 +320,17 @@ def phantom(name: str, *, shape: int | tuple[int, int, int] = (64, 64, 64),
 
 
 def _downsample(vol: np.ndarray, factor: int) -> np.ndarray:
+    """Means of ``factor^3`` blocks. A partial block at a far face is the mean of the
+    voxels it holds: ``downscale_local_mean`` pads it with zeros, which would darken
+    that layer wherever tissue or a non-zero background reaches the face."""
     if factor == 1:
         return vol
     from skimage.transform import downscale_local_mean
 
-    return downscale_local_mean(vol, (factor,) * 3)
+    means = downscale_local_mean(vol, (factor,) * 3)
+    held = [np.minimum(factor, n - factor * np.arange(m)) / factor
+            for n, m in zip(vol.shape, means.shape, strict=True)]
+    return means / (held[0][:, None, None] * held[1][None, :, None] * held[2][None, None, :])
 
 
 def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
@@ -349,8 +355,8 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
         normalize: map ``min..max`` to ``[0, 1]`` (default ``True``).
         downsample: integer factor ``f >= 1``: average ``f^3`` blocks of voxels
             (``skimage.transform.downscale_local_mean``, applied after normalising;
-            a partial block at the far faces is padded with zeros), giving shape
-            ``ceil(n / f)`` per axis and spacing multiplied by ``f``.
+            a partial block at the far faces averages the voxels it holds), giving
+            shape ``ceil(n / f)`` per axis and spacing multiplied by ``f``.
 
     Returns:
         ``(volume, spacing)``: a ``(D, H, W)`` ``float32`` ``jax.Array``, and
