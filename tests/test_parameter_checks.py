@@ -202,6 +202,10 @@ def test_nested_lists_become_arrays():
      "threshold: `low` must be a number, got the bool False"),
     (lambda: vs.threshold(DENSITY, 0.2, jnp.ones(2)), ValueError,
      r"threshold: `high` must be a scalar, got shape \(2,\)"),
+    (lambda: jax.grad(lambda r: vs.TransferFunction.from_points(r).opacities[1])(
+        jnp.asarray([(0.0, 0, 0, 0, 0), (1.0, 1, 1, 1, 0.5)])), TypeError,
+     r"from_points: `points` is traced .*`TransferFunction\(points\[:, 0\]"),
+    (lambda: vs.data.phantom("noise", seed=-1), ValueError, "phantom: `seed` must be >= 0"),
     # None and ragged lists: jnp.asarray raises a ValueError naming neither the argument
     # nor the fix (found by a review)
     (lambda: vs.Scene(volume=[[[0.0]], [[0.0, 1.0]]], transfer=TF), TypeError,

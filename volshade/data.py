@@ -291,7 +291,7 @@ def phantom(name: str, *, shape: int | tuple[int, int, int] = (64, 64, 64),
 
     Raises:
         ValueError: unknown ``name`` (the message lists the valid names), or ``shape``
-            not a positive int or 3 positive ints.
+            not a positive int or 3 positive ints, or a negative ``seed``.
         TypeError: ``seed`` is not an int.
 
     References:
@@ -310,6 +310,8 @@ def phantom(name: str, *, shape: int | tuple[int, int, int] = (64, 64, 64),
     shape = _shape(shape, where)
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
         raise TypeError(f"{where}: `seed` must be an int, got {seed!r}.")
+    if seed < 0:
+        raise ValueError(f"{where}: `seed` must be >= 0 (NumPy's random seeds), got {seed}.")
     vol = np.clip(builder(shape, int(seed)), 0.0, 1.0).astype(np.float32)
     return jnp.asarray(vol, dtype=jnp.float32)
 

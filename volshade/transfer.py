@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -142,8 +143,15 @@ class TransferFunction(eqx.Module):
         Raises:
             ValueError: rows not of length 5, intensities not strictly increasing,
                 colours or opacities outside [0, 1], or non-finite values.
+            TypeError: values that are not real numbers, or traced ones (the
+                constructor takes those).
         """
         where = "volshade.TransferFunction.from_points"
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(points)):
+            raise TypeError(f"{where}: `points` is traced (inside jit, grad or vmap), and "
+                            f"from_points checks its rows when it is called; build "
+                            f"`TransferFunction(points[:, 0], points[:, 1:4], points[:, 4])`,"
+                            f" whose arrays may be traced, instead.")
         try:
             table = np.asarray(points)
         except ValueError as err:  # rows of different lengths
