@@ -51,12 +51,16 @@ def test_python_m_volshade_runs_the_cli():
     assert "(default: 256)" in result.stdout and "--classification" in result.stdout
 
 
-def test_demo_writes_pngs(tmp_path, monkeypatch):
+def test_demo_writes_pngs(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("VOLSHADE_DATA", str(tmp_path / "nothing-here"))
     monkeypatch.setattr("volshade.data._DEBIAN_CH2", tmp_path / "no-ch2.nii.gz")
     # --size 8: the phantom's LAO radius (size / 8 = 1 voxel) keeps the offset below it
     rc = cli.main(["demo", "--out", str(tmp_path / "demo"), "--size", "8", "--image", "20"])
     assert rc == 0
+    # the skipped head says where it was looked for and how to get it (the first line
+    # alone ended at "Searched:")
+    out = capsys.readouterr().out
+    assert "skipping the Colin27 head" in out and "set VOLSHADE_DATA" in out
     pngs = sorted(p.name for p in pathlib.Path(tmp_path / "demo").glob("*.png"))
     assert "shells_phong.png" in pngs and "shells_side_by_side.png" in pngs
 

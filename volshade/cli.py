@@ -182,7 +182,9 @@ def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
     try:
         head, spacing = data.load("colin27", downsample=downsample)
     except (FileNotFoundError, ImportError) as err:
-        print(f"volshade demo: skipping the Colin27 head ({str(err).splitlines()[0]})")
+        # the whole message: past its first line it says where it looked and how to get
+        # the file
+        print(f"volshade demo: skipping the Colin27 head:\n{err}")
     else:
         front = Camera.orbit(azimuth=30, elevation=10, image_shape=shape, distance=3.0)
         voxel = float(min(spacing))

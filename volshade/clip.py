@@ -388,7 +388,8 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
 
 
 def clip_opacity(alpha: Float[Array, "D H W"], clip: Clip) -> Float[Array, "D H W"]:
-    """``alpha`` with the voxels ``clip`` removes set to 0 (same dtype).
+    """``alpha`` with the voxels ``clip`` removes set to 0 (same floating dtype;
+    integer and bool volumes come back as floats, as every volume is read).
 
     Args:
         alpha: ``(D, H, W)`` opacities (NaN or inf is refused). The values are only
