@@ -351,7 +351,7 @@ def test_errors():
         with pytest.raises(ValueError, match="`saliency` contains NaN"):
             fn(v.at[0, 0, 0].set(jnp.nan))
         with pytest.raises(ValueError, match=r"`saliency` must lie in \[0, 1\] \(a scaled "
-                                             r"saliency: `volshade.saliency.saliency`"):
+                                             r"saliency: `vs.saliency`"):
             fn(v + 5.0)
     with pytest.raises(ValueError, match="`saliency` must have 3 dimensions"):
         opacity_factor(jnp.zeros((4, 4)))
