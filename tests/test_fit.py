@@ -184,6 +184,7 @@ def _background_importance_scene():
     return scene, cam, vs.render(eqx.tree_at(lambda s: s.importance.intensity, scene, 1.0), cam)
 
 
+@pytest.mark.slow
 def test_a_minus_inf_start_is_refused_and_no_step_reports_the_initial_loss(monkeypatch):
     # found by a review: -inf, legal for a background importance, reached optimistix,
     # which stopped before a first step ("non-finite values", naming nothing), and the
