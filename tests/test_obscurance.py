@@ -15,6 +15,7 @@ from volshade.obscurance import (
     RHO_FUNCTIONS,
     ObscuranceParams,
     _direction_array,
+    _obscurance,
     _occluder_distances,
     _static_dirs,
     obscurance,
@@ -197,6 +198,13 @@ def test_rho_with_array_leaves_is_traced_and_gets_gradients():
         return jnp.sum(obscurance(vol, rho=_PowerRho(p), **kw))
 
     check_grad_fd(jax.jit(total), jnp.asarray(0.7))
+    # one compile per rho, reused: splitting rho at each call made a new static key
+    # each time for a pytree rho (found reading the change)
+    for rho in (_PowerRho(jnp.asarray(0.5)), jax.tree_util.Partial(lambda d, dm: d / dm)):
+        obscurance(vol, rho=rho, **kw)
+        compiled = _obscurance._cache_size()
+        obscurance(vol, rho=rho, **kw)
+        assert _obscurance._cache_size() == compiled
     with pytest.raises(TypeError, match="`rho` is static here .* must be hashable"):
         ObscuranceParams(rho=_PowerRho(jnp.asarray(0.5)))
     with pytest.raises(TypeError, match="`rho` is static here"):

@@ -200,6 +200,8 @@ def test_nested_lists_become_arrays():
      "Phong: `ambient` must be a scalar to shade, got shape \\(2,\\); .* jax.vmap"),
     (lambda: vs.threshold(DENSITY, False, True), TypeError,
      "threshold: `low` must be a number, got the bool False"),
+    (lambda: vs.threshold(DENSITY, True, False), TypeError,
+     "threshold: `low` must be a number, got the bool True"),
     (lambda: vs.threshold(DENSITY, 0.2, jnp.ones(2)), ValueError,
      r"threshold: `high` must be a scalar, got shape \(2,\)"),
     (lambda: jax.grad(lambda r: vs.TransferFunction.from_points(r).opacities[1])(

@@ -147,8 +147,10 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
     return jnp.stack(components, axis=-1)
 
 
-def _nonzero(x: Array) -> Array:
-    return jnp.where(x > 0, x, jnp.ones_like(x))
+def _divisor(x: Array) -> Array:
+    """``x`` where it is a finite number > 0, else 1 (a zero field stays 0, an infinite
+    component keeps an infinite norm instead of giving inf / inf)."""
+    return jnp.where((x > 0) & jnp.isfinite(x), x, jnp.ones_like(x))
 
 
 def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = False
@@ -165,10 +167,10 @@ def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = Fal
         # the field divided by its largest component first, so that neither the
         # magnitudes nor the quotient's derivative (m / M^2) leave the float range; the
         # scaled magnitude does not depend on that factor, which is held constant
-        gradient = gradient / _nonzero(lax.stop_gradient(jnp.max(jnp.abs(gradient))))
+        gradient = gradient / _divisor(lax.stop_gradient(jnp.max(jnp.abs(gradient))))
     # |g| = p |g / p| with p the largest |component|: the squares of large components
     # would overflow (float32: above 1e19) and those of small ones underflow. |g| is
     # homogeneous, so holding p constant leaves its derivative exact
-    peak = _nonzero(lax.stop_gradient(jnp.max(jnp.abs(gradient), axis=-1, keepdims=True)))
+    peak = _divisor(lax.stop_gradient(jnp.max(jnp.abs(gradient), axis=-1, keepdims=True)))
     magnitude = peak[..., 0] * safe_norm(gradient / peak, axis=-1)
     return safe_div(magnitude, jnp.max(magnitude)) if scaled else magnitude

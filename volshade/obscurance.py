@@ -617,34 +617,37 @@ def obscurance(
     # a rho with array leaves (an equinox Module with a parameter) is traced through
     # them, so they get gradients; the rest of it is compiled in
     rho_arrays, rho_rest = eqx.partition(rho_fn, eqx.is_array)
+    if not jax.tree_util.tree_leaves(rho_arrays):
+        rho_rest = rho_fn  # as given: partition would rebuild a pytree rho at every call
     return _obscurance(density, d_max, colors, ambient if bleeding else None, rho_arrays,
-                       dirs=_static_dirs(dirs), rho_rest=_Hashable(rho_rest),
+                       dirs=_static_dirs(dirs), rho_rest=_Static(rho_rest, rho_fn),
                        columns_last=_columns_last())
 
 
-class _Hashable:
-    """A static argument of jit: hashed and compared as its value where that can be
-    hashed, else by identity (each such object compiles its own program)."""
+class _Static:
+    """A static argument of jit: hashed and compared as ``value`` where that can be
+    hashed, else by the identity of ``owner``, the rho it came from (so the same rho
+    reuses its compiled program, and each other one compiles its own)."""
 
-    def __init__(self, value: Any):
-        self.value = value
+    def __init__(self, value: Any, owner: Any):
+        self.value, self.owner = value, owner
         try:
             self._key = (True, hash(value))
         except TypeError:
-            self._key = (False, id(value))
+            self._key = (False, id(owner))
 
     def __hash__(self) -> int:
         return hash(self._key)
 
     def __eq__(self, other: object) -> bool:
-        if not isinstance(other, _Hashable) or self._key != other._key:
+        if not isinstance(other, _Static) or self._key != other._key:
             return False
-        return self.value == other.value if self._key[0] else self.value is other.value
+        return self.value == other.value if self._key[0] else self.owner is other.owner
 
 
 @functools.partial(jax.jit, static_argnames=("dirs", "rho_rest", "columns_last"))
 def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Array | None,
-                rho_arrays: Any, *, dirs: tuple, rho_rest: _Hashable,
+                rho_arrays: Any, *, dirs: tuple, rho_rest: _Static,
                 columns_last: bool) -> Array:
     rho_fn = eqx.combine(rho_arrays, rho_rest.value)
     dirs = np.asarray(dirs)
@@ -736,11 +739,13 @@ def threshold(
     obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
                                 "obscurance", where)
     dtype = obscurance.dtype
-    if isinstance(low, int | float) and isinstance(high, int | float) and low > high:
-        raise ValueError(f"{where}: `low` must be <= `high`, got low={low}, high={high}.")
     # a bool is refused, not read as 0 or 1 (as ObscuranceParams refuses it)
+    given = low, high
     low, high = (_checks.scalar(v, name, where).astype(dtype)
                  for v, name in ((low, "low"), (high, "high")))
+    if all(isinstance(v, int | float) for v in given) and given[0] > given[1]:
+        raise ValueError(f"{where}: `low` must be <= `high`, got low={given[0]}, "
+                         f"high={given[1]}.")
     # checked on the input, which the output always uses (a check on `low` alone
     # would be compiled away where every value is above `high`)
     xp, lo, hi = _checks.for_check(low, high)
