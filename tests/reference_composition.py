@@ -24,7 +24,9 @@ def modulation(alpha_acc, i_acc, i_s):
         return 1.0
     if 1 - alpha_acc >= vis(i_s, i_acc):
         return 1.0
-    return (1 - vis(i_s, i_acc)) / alpha_acc
+    # 1 - vis(i_s, i_acc), without the cancellation of 1 - (1 - e^x): a faint sample 30
+    # above an opaque ray (m = e^-30) would lose 3 digits of its colour
+    return np.exp(i_acc - i_s) / alpha_acc
 
 
 def importance_step(c, a, i_acc, cs, as_, i_s):
