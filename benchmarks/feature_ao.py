@@ -54,14 +54,15 @@ def _measure(name, vol, tf, features, *, n, directions, radius, samples, brick, 
     """The rows and ratios of one dataset (a function, so closures bind its values)."""
     lao_kw = dict(directions=directions, radius=radius, samples=samples)
     pad = _pad(radius)
-    alpha = tf.opacity(vol)
     feature_alphas = vs.transfer.feature_opacities(vol, features, base=tf)
     occupied = [float(jnp.mean(a > 0)) for a in feature_alphas]
     tag = f"{name} {n}^3 ({len(features)} features)"
-    t_classic = row(f"{tag}: classic LAO", lambda a: vs.lao(a, **lao_kw), alpha)
+    # every LAO row starts from the volume, as feature_ao does: the classification is
+    # part of the work on both sides of the ratios
+    t_classic = row(f"{tag}: classic LAO", lambda v: vs.lao(tf.opacity(v), **lao_kw), vol)
     t_each = [row(f"{tag}: feature {k} LAO alone ({100 * occ:.1f}% of voxels)",
-                  lambda a: vs.lao(a, **lao_kw), a)
-              for k, (a, occ) in enumerate(zip(feature_alphas, occupied, strict=True))]
+                  lambda v, f=f: vs.lao(f.opacity(v, tf), **lao_kw), vol)
+              for k, (f, occ) in enumerate(zip(features, occupied, strict=True))]
     per_feature = jnp.stack([vs.lao(a, **lao_kw) for a in feature_alphas])
     t_merge = {m: row(f"{tag}: merge {m}",
                       lambda ao, op, m=m: vs.merge_feature_ao(ao, op, merge=m),

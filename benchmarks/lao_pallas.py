@@ -4,8 +4,9 @@
 
 Issue 3's GPU case (512^3, L = 54, M = 50, R = 50; ``--quick``: 256^3) with
 ``lao(..., implementation="pallas")`` against the XLA march in the same run
-(``benchmarks.lao.run_gpu_pallas``), and bricked against plain on a sparse 256^3
-ball. Needs a GPU: on a CPU the kernels would run in Pallas' interpreter.
+(``benchmarks.lao.run_gpu_pallas``), and bricked against plain on a sparse ball of
+half the edge (256^3; ``--quick``: 128^3). Needs a GPU: on a CPU the kernels would
+run in Pallas' interpreter.
 """
 
 import jax

@@ -101,25 +101,44 @@ def _sass(ttir: str, num_warps: int, work: pathlib.Path, name: str) -> dict:
                           capture_output=True, text=True, check=True).stderr
     sass = subprocess.run([bin_dir / "cuobjdump", "--dump-sass", cubin], capture_output=True,
                           text=True, check=True).stdout
-    instructions = []
-    for line in sass.splitlines():
-        match = re.match(r"\s*/\*([0-9a-f]{4,})\*/\s+(.*?)\s*;", line)
-        if match:
-            instructions.append((int(match.group(1), 16), match.group(2)))
+    instructions, labels = _parse_sass(sass)
     return {"registers": int(re.search(r"Used (\d+) registers", info).group(1)),
             "spill_bytes": int(re.search(r"(\d+) bytes spill stores", info).group(1)),
-            "instructions": instructions}
+            "instructions": instructions, "labels": labels}
 
 
-def _innermost_loop(instructions) -> list[str]:
-    """The body of the shortest backward branch (the sample loop)."""
+def _parse_sass(sass: str) -> tuple[list[tuple[int, str]], dict[str, int]]:
+    """``cuobjdump --dump-sass`` text -> ``[(address, instruction)]`` and the address of
+    each branch label (``.L_x_N:`` lines name the instruction after them)."""
+    instructions, labels, pending = [], {}, []
+    for line in sass.splitlines():
+        label = re.match(r"\s*\.(L_x_\d+):", line)
+        if label:
+            pending.append(label.group(1))
+            continue
+        match = re.match(r"\s*/\*([0-9a-f]{4,})\*/\s+(.*?)\s*;", line)
+        if match:
+            address = int(match.group(1), 16)
+            labels.update(dict.fromkeys(pending, address))
+            pending = []
+            instructions.append((address, match.group(2)))
+    return instructions, labels
+
+
+def _innermost_loop(instructions, labels) -> list[str]:
+    """The body of the shortest backward branch (the sample loop); its target is a label
+    (``BRA `(.L_x_N)``) or an address (``BRA 0x...``)."""
     loops = []
     for address, text in instructions:
-        match = re.search(r"BRA (?:`\(\.L_x_\d+\)|0x([0-9a-f]+))", text)
-        if match and match.group(1) and int(match.group(1), 16) < address:
-            loops.append((int(match.group(1), 16), address))
+        match = re.search(r"BRA (?:`\(\.(L_x_\d+)\)|0x([0-9a-f]+))", text)
+        if not match:
+            continue
+        target = labels.get(match.group(1)) if match.group(1) else int(match.group(2), 16)
+        if target is not None and target < address:
+            loops.append((target, address))
     if not loops:
-        return [text for _, text in instructions]
+        raise RuntimeError("benchmarks.pallas_sass: no backward branch in the kernel's SASS, "
+                           "so its sample loop cannot be told apart; read the SASS by hand.")
     low, high = min(loops, key=lambda loop: loop[1] - loop[0])
     return [text for address, text in instructions if low <= address <= high]
 
@@ -155,7 +174,8 @@ def run(quick: bool, *, n: int = 512, n_dirs: int = 54, samples: int = 50,
                     tile = cotangent_tile if kernel == "_chunk_cotangents_kernel" else launch.tile
                     per_thread = math.prod(tile) / (32 * launch.num_warps)
                     if kernel in ("_forward_kernel", "_chunk_starts_kernel"):
-                        body, samples_per_body = _innermost_loop(compiled["instructions"]), 1
+                        body = _innermost_loop(compiled["instructions"], compiled["labels"])
+                        samples_per_body = 1
                     else:
                         body = [text for _, text in compiled["instructions"]]
                         samples_per_body = chunk
