@@ -253,6 +253,37 @@ def test_grads_finite_at_voxel_boundary_crossing():
     assert min(left, right) - 1e-4 <= g_r <= max(left, right) + 1e-4
 
 
+@pytest.mark.parametrize("corr", [False, True])
+def test_grads_at_voxel_boundary_crossing_are_the_derivative_from_above(corr):
+    # rays along +-x, +-y, +-z with samples on voxel planes: a ray going down used to take
+    # the slope of the cell it leaves and a ray going up that of the cell it enters, and
+    # their sum could lie outside both one-sided derivatives (even of the other sign)
+    dirs = jnp.concatenate([jnp.eye(3), -jnp.eye(3)])
+    alpha = _random_alpha(_FD_SHAPE, 10, jnp.float64)
+    radius, offset, h = jnp.float64(8.0), jnp.float64(0.0), 1e-6
+    _, g_r, g_a = _grad_jit(alpha, radius, offset, dirs, corr)
+    at = float(_loss_jit(alpha, radius, offset, dirs, corr))
+    above_r = (float(_loss_jit(alpha, radius + h, offset, dirs, corr)) - at) / h
+    below_r = (at - float(_loss_jit(alpha, radius - h, offset, dirs, corr))) / h
+    above_a = (float(_loss_jit(alpha, radius, offset + h, dirs, corr)) - at) / h
+    assert abs(above_r - below_r) > 1e-3  # a real kink
+    np.testing.assert_allclose(float(g_r), above_r, rtol=1e-4)
+    np.testing.assert_allclose(float(g_a), above_a, rtol=1e-4)
+    # the two-voxel case that had the wrong sign: +z and -z, samples at s = 1 (R = 4, a = 0)
+    # and s = 1.5, 2 ... (R = 2.5, a = 0.5, M = 2)
+    line = jnp.array([0.0, 1, 0, 0, 1, 0, 0]).reshape(1, 1, 7)
+    zs = jnp.array([[0.0, 0, 1], [0, 0, -1]])
+
+    def centre(r, a):
+        return lao(line, directions=zs, radius=r, offset=a, samples=2, max_radius=5.0)[0, 0, 3]
+
+    for r, a in ((4.0, 0.0), (2.5, 0.5)):
+        g = jax.grad(centre, (0, 1))(jnp.float64(r), jnp.float64(a))
+        for k, step in enumerate(((h, 0.0), (0.0, h))):
+            above = (float(centre(r + step[0], a + step[1])) - float(centre(r, a))) / h
+            assert abs(float(g[k]) - above) <= 1e-6, (r, a, k, g, above)
+
+
 # ----------------------------------------------------------------- bricks
 
 

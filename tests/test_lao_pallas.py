@@ -31,6 +31,9 @@ CASES = [
     ((8, 8, 8), vdirs.icosphere(0), 3.9, 0.0, 5, True, True, 4.0),
     # a traced radius and no max_radius: the padding is the whole extent and shifts clamp
     ((7, 10, 6), vdirs.fibonacci(4), 9.0, 1.5, 4, True, False, None),
+    # rays along +-x, +-y, +-z with every sample on a voxel plane (s = 1, 3, 5): the
+    # cell, and so the slope, is the one the ray enters, as in the XLA march
+    ((6, 7, 8), np.concatenate([np.eye(3), -np.eye(3)]), 8.0, 0.0, 4, False, False, 9.0),
 ]
 
 

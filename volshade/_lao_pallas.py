@@ -69,6 +69,7 @@ from .lao import (
     _CORNERS,
     _active_bricks,
     _blend_corners,
+    _cell,
     _chunking,
     _corner_slopes,
     _corner_weights,
@@ -153,14 +154,13 @@ def _pack(*values, dtype):
 
 
 def _position(radius, offset, samples, index, direction):
-    """Segment-midpoint distance $s_i = a + (i + 1/2)(R - a)/M$ and ``floor``/``frac``
-    of $s_i l$ (voxels)."""
+    """Segment-midpoint distance $s_i = a + (i + 1/2)(R - a)/M$, and the fraction and
+    integer corner of the trilinear cell of $s_i l$ (voxels; as
+    :func:`volshade.lao._cell` chooses it)."""
     step = (radius - offset) / samples
     distance = offset + (index.astype(step.dtype) + 0.5) * step
-    position = [distance * direction[ax] for ax in range(3)]
-    floor = [jnp.floor(p) for p in position]
-    return step, [p - f for p, f in zip(position, floor, strict=True)], \
-        [f.astype(jnp.int32) for f in floor]
+    cells = [_cell(distance * direction[ax], direction[ax]) for ax in range(3)]
+    return step, [f for f, _ in cells], [n for _, n in cells]
 
 
 def window_start(origin, pad, shift, corner):

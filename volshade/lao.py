@@ -32,13 +32,14 @@ consistently (then AO $\to 1$ as $R \to a$).
 
 **How it is computed.** For a fixed direction and sample, the offset $s_i l$ is
 the same for every voxel, so the sample volume is the opacity volume shifted by
-$\lfloor s_i l \rfloor$ and blended with eight fixed trilinear weights: eight
-``lax.dynamic_slice`` reads of a zero-padded copy of ``alpha`` that XLA fuses
-into one dense pass, with no gather. The integer shift is traced, so ``radius``
-and ``offset`` are dynamic: changing them never recompiles. Directions and
-chunks of samples are ``lax.scan`` loops (each chunk of about $\sqrt{M}$ samples
-unrolled so XLA fuses it); the forward pass holds about five volume-sized
-buffers whatever $L$ and $M$.
+$\lfloor s_i l \rfloor$ (on a grid plane, the cell the ray enters) and blended
+with eight fixed trilinear weights: eight ``lax.dynamic_slice`` reads of a
+zero-padded copy of ``alpha`` that XLA fuses into one dense pass, with no
+gather. The integer shift is traced, so ``radius`` and ``offset`` are dynamic:
+changing them never recompiles. Directions and chunks of samples are
+``lax.scan`` loops (each chunk of about $\sqrt{M}$ samples unrolled so XLA fuses
+it); the forward pass holds about five volume-sized buffers whatever $L$ and
+$M$.
 
 **Forward** evaluates eq. 3 back to front in Horner form,
 $H_i = H_{i+1} + 1 - \alpha_i H_{i+1}$ with $M I_l = H_0$, so the march carries
@@ -107,24 +108,42 @@ def _corner_weights(frac: Array) -> list[tuple[tuple[int, int, int], Array]]:
     return out
 
 
+def _cell(offset: Array, direction: Array) -> tuple[Array, Array]:
+    """Fraction and integer corner ``(f, n)`` of the trilinear cell of the sample at
+    ``offset`` ``= s l``: ``offset`` is about ``n + f``, with ``f`` in [0, 1].
+
+    On a grid plane this is the cell the ray enters as $s$ grows (``n`` is the plane for
+    ``l_ax > 0``, the plane minus 1 for ``l_ax < 0``): the value is the same either side,
+    but the slope along the ray is not, and this way it is the derivative from above in
+    $s$ (and so in the radius and the offset) for every direction, not one side for rays
+    going up and the other for rays going down. An offset within 4 ulps of a plane counts
+    as on it, so that how XLA rounds ``s l`` (it may fuse the product into an FMA in one
+    place and not in another) does not change the side; ``f`` is clipped to [0, 1], which
+    moves the sample by those few ulps at most.
+    """
+    nearest = jnp.floor(offset + 0.5)
+    on_plane = jnp.abs(offset - nearest) <= 4 * jnp.finfo(offset.dtype).eps * jnp.abs(offset)
+    n = jnp.where(on_plane, jnp.where(direction < 0, nearest - 1, nearest), jnp.floor(offset))
+    return jnp.clip(offset - n, 0, 1), n.astype(jnp.int32)
+
+
 def _corner_slices(source: Array, pad: tuple[int, int, int], shape: tuple[int, int, int],
-                   offset: Array):
+                   offset: Array, direction: Array):
     """Fraction of ``offset`` and the eight shifted windows ``source[pad + x + n + c]``.
 
     ``source`` is the opacity zero-padded by ``pad`` voxels on each side (so the
-    window's voxel ``x`` is ``source[x + pad]``); ``n = floor(offset)`` is traced and
-    each corner is one ``dynamic_slice`` (no gather). Where ``pad`` is at least the
-    volume extent, clamped starts land in the zero padding, which is exactly the
-    zero outside the volume.
+    window's voxel ``x`` is ``source[x + pad]``); the cell ``n`` (:func:`_cell`) is
+    traced and each corner is one ``dynamic_slice`` (no gather). Where ``pad`` is at
+    least the volume extent, clamped starts land in the zero padding, which is exactly
+    the zero outside the volume.
     """
-    floor = jnp.floor(offset)
-    n = floor.astype(jnp.int32)
+    frac, n = _cell(offset, direction)
     # clamp here: lax.dynamic_slice would wrap a negative start around, like NumPy
     limit = tuple(source.shape[ax] - shape[ax] for ax in range(3))
     slices = {c: lax.dynamic_slice(
         source, tuple(jnp.clip(pad[ax] + n[ax] + c[ax], 0, limit[ax]) for ax in range(3)),
         shape) for c in _CORNERS}
-    return offset - floor, n, slices
+    return frac, n, slices
 
 
 def _weighted_sum(weights: list, values: list) -> Array:
@@ -155,10 +174,10 @@ def _blend_corners(frac, values: list, *, exact: bool) -> Array:
     return values[0]
 
 
-def _trilinear_shifted(source, pad, shape, offset, *, exact: bool) -> Array:
+def _trilinear_shifted(source, pad, shape, offset, direction, *, exact: bool) -> Array:
     """``alpha(x + offset)`` for every voxel ``x`` of the window: 8 fused shifted reads
     (``exact``: see :func:`_blend_corners`)."""
-    frac, _, slices = _corner_slices(source, pad, shape, offset)
+    frac, _, slices = _corner_slices(source, pad, shape, offset, direction)
     return _blend_corners(frac, [slices[c] for c in _CORNERS], exact=exact)
 
 
@@ -184,13 +203,13 @@ def _trilinear_shifted_with_slope(source, pad, shape, offset, direction, *, exac
 
     Both blend the same eight shifted windows, so XLA fuses them into one pass.
     """
-    frac, _, slices = _corner_slices(source, pad, shape, offset)
+    frac, _, slices = _corner_slices(source, pad, shape, offset, direction)
     values = [slices[c] for c in _CORNERS]
     return (_blend_corners(frac, values, exact=exact),
             _weighted_sum(_corner_slopes(frac, direction), values))
 
 
-def _add_trilinear_shifted_adjoint(accumulator, cotangent, pad, offset) -> Array:
+def _add_trilinear_shifted_adjoint(accumulator, cotangent, pad, offset, direction) -> Array:
     """Add the transpose of :func:`_trilinear_shifted` (in ``source``) to ``accumulator``.
 
     Corner ``c`` read ``source[pad + n + c + x]``, so its adjoint adds ``w_c g[x]``
@@ -200,8 +219,7 @@ def _add_trilinear_shifted_adjoint(accumulator, cotangent, pad, offset) -> Array
     Shifts that put the whole window in the zero padding (``|n| >= pad``, possible
     only when ``pad`` is the volume extent) read zeros and contribute nothing.
     """
-    floor = jnp.floor(offset)
-    frac, n = offset - floor, floor.astype(jnp.int32)
+    frac, n = _cell(offset, direction)
     shape = cotangent.shape
     inside = jnp.all((n >= -jnp.asarray(pad)) & (n <= jnp.asarray(pad) - 1))
     padded = jnp.pad(jnp.where(inside, cotangent, 0), 1)
@@ -225,8 +243,9 @@ def _chunking(n_samples: int) -> tuple[int, int]:
     return n_chunks, math.ceil(n_samples / n_chunks)
 
 
-def _sample_opacity(source, pad, shape, offset, ratio, correction: bool) -> Array:
-    alpha = _trilinear_shifted(source, pad, shape, offset, exact=correction)
+def _sample_opacity(source, pad, shape, distance, direction, ratio, correction: bool) -> Array:
+    alpha = _trilinear_shifted(source, pad, shape, distance * direction, direction,
+                               exact=correction)
     return correct_opacity(alpha, ratio) if correction else alpha
 
 
@@ -255,7 +274,7 @@ def _horner_chunks(source, pad, shape, direction, distances, valid, ratio, corre
 
     def step(horner, sample):
         distance, is_valid = sample
-        alpha = _sample_opacity(source, pad, shape, distance * direction, ratio, correction)
+        alpha = _sample_opacity(source, pad, shape, distance, direction, ratio, correction)
         return horner + is_valid * (1 - alpha * horner), None
 
     def chunk(horner, samples):
@@ -273,7 +292,7 @@ def _forward_chunks(source, pad, shape, direction, distances, valid, ratio, corr
     def step(carry, sample):
         transmittance, occlusion = carry
         distance, is_valid = sample
-        alpha = _sample_opacity(source, pad, shape, distance * direction, ratio, correction)
+        alpha = _sample_opacity(source, pad, shape, distance, direction, ratio, correction)
         transmittance = transmittance * (1 - is_valid * alpha)
         occlusion = occlusion + is_valid * (1 - transmittance)
         return (transmittance, occlusion), None
@@ -367,7 +386,7 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
 
             def t_step(transmittance, sample):
                 distance, is_valid = sample
-                alpha = _sample_opacity(source, pad, shape, distance * direction, step,
+                alpha = _sample_opacity(source, pad, shape, distance, direction, step,
                                         correction)
                 return transmittance * (1 - is_valid * alpha), transmittance
 
@@ -382,7 +401,8 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
                 g_alpha, suffix_next, acc_slope, acc_radius = _reverse_step(
                     ct, transmittance, suffix_next, alpha, slope, is_valid, step, coef,
                     acc_slope, acc_radius, samples=samples, correction=correction)
-                d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad, offset_vec)
+                d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad, offset_vec,
+                                                          direction)
                 return (suffix_next, d_source, acc_slope, acc_radius), None
 
             state, _ = lax.scan(sample_bwd, state, (transmittances, dists, valids, coefs),
@@ -744,9 +764,10 @@ def lao(
         radius: sphere radius $R$ in voxels; dynamic and differentiable (in reverse
             mode, ``jax.grad``/``jax.vjp``/``jax.jacrev``: the gradient is a custom
             VJP, so ``jax.jvp``, ``jax.jacfwd`` and ``jax.hessian`` fail, here and in
-            renders with LAO).
+            renders with LAO). Where a sample lies on a voxel plane (trilinear
+            interpolation has a kink there) the gradient is the derivative from above.
         offset: initial offset $a$ in voxels, ``0 <= offset < radius``; dynamic and
-            differentiable.
+            differentiable (from above where a sample lies on a voxel plane).
         samples: $M$, the number of segments of the shell (static, ``>= 1``);
             ``M - 1`` opacity samples are taken per ray, so ``samples=1`` takes none
             and gives AO = 1 everywhere.
