@@ -143,6 +143,28 @@ def test_uniform_weights_equal_no_weights_and_scale_invariant():
                                atol=1e-14)
 
 
+def test_extreme_float32_weights_and_direction_lengths_are_kept():
+    # weights of 1e38 overflowed their float32 sum, or were divided through a subnormal
+    # reciprocal that XLA flushes to zero (AO 1 everywhere); direction vectors of length
+    # 1e20 or 1e-30 overflowed or underflowed their squares (a zero direction, or refused)
+    alpha = _random_alpha((6, 6, 6), 0)
+    dirs = jnp.asarray([[0.0, 0, 1], [0, 1, 0], [0.6, 0.8, 0]], jnp.float32)
+    kw = dict(radius=3.0, samples=4)
+    want = lao(alpha, directions=dirs, weights=jnp.asarray([1.0, 1.0, 2.0]), **kw)
+    weighted = jax.jit(lambda w: lao(alpha, directions=dirs, weights=w, **kw))
+    for scale in (1.5e38, 1e-30):
+        w = jnp.asarray([1.0, 1.0, 2.0], jnp.float32) * scale
+        np.testing.assert_allclose(lao(alpha, directions=dirs, weights=w, **kw), want,
+                                   rtol=0, atol=1e-6)
+        np.testing.assert_allclose(weighted(w), want, rtol=0, atol=1e-6)
+    want = lao(alpha, directions=dirs, **kw)
+    traced = jax.jit(lambda d: lao(alpha, directions=d, **kw))
+    for scale in (1e20, 1e-30):
+        np.testing.assert_allclose(lao(alpha, directions=dirs * scale, **kw), want, rtol=0,
+                                   atol=1e-6)
+        np.testing.assert_allclose(traced(dirs * scale), want, rtol=0, atol=1e-6)
+
+
 # ----------------------------------------------------------------- properties
 
 

@@ -86,7 +86,7 @@ from jax.scipy.signal import fftconvolve
 
 from . import _checks
 from . import directions as _directions
-from ._numerics import correct_opacity, safe_norm
+from ._numerics import correct_opacity
 from ._types import Array, ArrayLike, Float, Volume
 
 _WHERE = "volshade.lao"
@@ -620,10 +620,16 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
     message = ("`directions` holds a zero or non-finite vector; every direction must be a "
                "non-zero finite 3-vector.")
     xp, dirs = _checks.for_check(dirs)  # known directions: checked and scaled on the host
-    norm = np.linalg.norm(dirs, axis=-1, keepdims=True) if xp is np else \
-        safe_norm(dirs, axis=-1, keepdims=True)
-    dirs = _checks.refuse(dirs, [(~xp.all(xp.isfinite(dirs)) | xp.any(norm == 0), message)],
+    peak = xp.max(xp.abs(dirs), axis=-1, keepdims=True)
+    dirs = _checks.refuse(dirs, [(~xp.all(xp.isfinite(dirs)) | xp.any(peak == 0), message)],
                           where)
+    # the squares of (0, 0, 1e20) overflow float32 (which made it a zero direction) and
+    # those of (0, 0, 1e-30) underflow: such vectors are divided by their largest
+    # component first (others are not, so that a unit vector stays exactly as given)
+    extreme = ((peak < 1e-15) & (peak > 0)) | (peak > 1e15)
+    dirs = dirs / xp.where(extreme, peak, 1)
+    # 0 only for a refused zero row, kept finite
+    norm = xp.sqrt(xp.sum(dirs * dirs, axis=-1, keepdims=True))
     return jnp.asarray(dirs / xp.where(norm == 0, 1, norm), dtype)
 
 
@@ -717,11 +723,22 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     else:
         weights = _weights_array(weights, n_dirs, where).astype(dtype)
         xp, w = _checks.for_check(weights)
-        total = xp.sum(w)
+        peak = xp.max(w)
         weights = _checks.refuse(
-            weights, [(~xp.all(xp.isfinite(w)) | xp.any(w < 0) | ~(total > 0),
+            weights, [(~xp.all(xp.isfinite(w)) | xp.any(w < 0) | ~(peak > 0),
                        "`weights` must be finite, >= 0 and not all zero.")], where)
-        weights = weights / jnp.asarray(xp.where(total > 0, total, 1), weights.dtype)
+        # w / sum(w) through w / max(w): a float32 sum of weights of 1e38 overflows, and
+        # XLA on a CPU divides through the reciprocal, which for a divisor above 8.5e37
+        # is subnormal and flushed to zero (and it turns w / r / r into w / r^2). Known
+        # weights are scaled on the host, traced ones twice by the reciprocal of the
+        # peak's square root, held constant (the quotient does not depend on it).
+        if xp is np:
+            scaled = w / np.where(peak > 0, peak, 1)
+            weights = jnp.asarray(scaled / np.sum(scaled), weights.dtype)
+        else:
+            inv_root = lax.stop_gradient(1 / jnp.sqrt(jnp.where(peak > 0, peak, 1)))
+            scaled = weights * inv_root * inv_root
+            weights = scaled / jnp.sum(scaled)
 
     bound = max_radius if max_radius is not None else r_value
     # a padding as wide as the (brick-aligned) volume makes clamped reads land in zeros
