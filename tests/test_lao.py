@@ -159,7 +159,7 @@ def test_extreme_float32_weights_and_direction_lengths_are_kept():
         np.testing.assert_allclose(weighted(w), want, rtol=0, atol=1e-6)
     want = lao(alpha, directions=dirs, **kw)
     traced = jax.jit(lambda d: lao(alpha, directions=d, **kw))
-    for scale in (1e20, 1e-30):
+    for scale in (1e20, 1e-30, 3e38):
         np.testing.assert_allclose(lao(alpha, directions=dirs * scale, **kw), want, rtol=0,
                                    atol=1e-6)
         np.testing.assert_allclose(traced(dirs * scale), want, rtol=0, atol=1e-6)

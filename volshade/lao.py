@@ -625,9 +625,14 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
                           where)
     # the squares of (0, 0, 1e20) overflow float32 (which made it a zero direction) and
     # those of (0, 0, 1e-30) underflow: such vectors are divided by their largest
-    # component first (others are not, so that a unit vector stays exactly as given)
+    # component first (others are not, so that a unit vector stays exactly as given);
+    # traced ones twice by the reciprocal of its square root, as the weights below
     extreme = ((peak < 1e-15) & (peak > 0)) | (peak > 1e15)
-    dirs = dirs / xp.where(extreme, peak, 1)
+    if xp is np:
+        dirs = dirs / np.where(extreme, peak, 1)
+    else:
+        inv_root = 1 / jnp.sqrt(jnp.where(extreme, peak, 1))
+        dirs = dirs * inv_root * inv_root
     # 0 only for a refused zero row, kept finite
     norm = xp.sqrt(xp.sum(dirs * dirs, axis=-1, keepdims=True))
     return jnp.asarray(dirs / xp.where(norm == 0, 1, norm), dtype)
