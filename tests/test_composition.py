@@ -166,13 +166,9 @@ def test_accumulated_opacity_equals_standard():
     std = standard_init((32,), jnp.float64)
     for i in range(20):
         np.testing.assert_array_equal(states.transmittance[i], std.transmittance)
-        # the opacity, held apart, is 1 - T up to the rounding of its sums (one per step)
-        np.testing.assert_allclose(states.opacity[i], 1 - std.transmittance, rtol=0,
-                                   atol=20 * np.finfo(np.float64).eps)
         std = standard_step(std, Sample(jnp.asarray(c[:, i]), jnp.asarray(a[:, i])))
     out = jcomposite(c, a, importance=imp)
-    np.testing.assert_allclose(out[:, 3], 1 - std.transmittance, rtol=0,
-                               atol=20 * np.finfo(np.float64).eps)
+    np.testing.assert_array_equal(out[:, 3], 1 - std.transmittance)
 
 
 def test_importance_shift_invariance():
@@ -306,11 +302,11 @@ def test_hard_cases(case, bg_importance):
 @st.composite
 def hard_rays(draw):
     n = 6
-    # A step whose alpha' is below sqrt(tiny) (1e-19 in float32, 1e-154 in float64) changes
-    # nothing, so an opacity below that is kept in float64 only: draw those as exact zeros.
-    # (Fainter ones down to 1e-18 are drawn: they leave T = 1 in float32 but not alpha.)
-    alpha = st.one_of(st.sampled_from([0.0, 1.0, 1e-6, 0.5, 1e-12, 1e-18]),
-                      st.floats(0.0, 1.0, width=32).map(lambda x: x if x >= 1e-18 else 0.0))
+    # An opacity below float32's eps / 2 cannot change T = 1 in float32 (1 - alpha rounds to
+    # 1), so an empty ray stays empty there and not in float64, and the accumulated importance
+    # of such a sample (K = I - ln alpha) is kept in one dtype only: draw those as exact zeros.
+    alpha = st.one_of(st.sampled_from([0.0, 1.0, 1e-6, 0.5]),
+                      st.floats(0.0, 1.0, width=32).map(lambda x: x if x >= 6e-8 else 0.0))
     imp = st.one_of(st.sampled_from([-1e4, 0.0, 1e4, -30.0, 30.0]), st.floats(-5.0, 5.0, width=32))
     color = st.floats(0.0, 1.0, width=32)
     alphas = draw(st.lists(alpha, min_size=n, max_size=n))
@@ -402,10 +398,9 @@ def test_custom_vjp_any_state_cotangent():
     a = np.where(rng.uniform(size=a.shape) < 0.2, np.where(rng.uniform(size=a.shape) < 0.5, 0, 1),
                  a)
     c, a, imp = map(jnp.asarray, (c, a, imp))
-    t = np.where(np.arange(n) % 2, rng.uniform(0, 1, n), 1.0)
-    init = ImportanceState(jnp.asarray(rng.uniform(0, 1, (n, 3))), jnp.asarray(t),
-                           jnp.asarray(1 - t), jnp.asarray(rng.normal(0, 2, n)),
-                           jnp.asarray(-rng.uniform(0, 2, n)))
+    init = ImportanceState(jnp.asarray(rng.uniform(0, 1, (n, 3))),
+                           jnp.asarray(np.where(np.arange(n) % 2, rng.uniform(0, 1, n), 1.0)),
+                           jnp.asarray(rng.normal(0, 2, n)), jnp.asarray(-rng.uniform(0, 2, n)))
 
     def plain(state, c, a, imp):
         return jax.lax.scan(lambda s, x: (importance_step(s, x), None), state,
@@ -435,22 +430,6 @@ def test_faint_samples_on_empty_rays_have_finite_gradients(dtype):
                 assert np.all(np.isfinite(g)), (alpha, got)
             if dtype == jnp.float64:
                 _assert_grads_equal(got, _jit_autodiff_grad(c, a, imp, bg, bgi), 1e-12)
-
-
-@pytest.mark.parametrize("alpha", [1e-8, 1e-12, 1e-17])
-def test_a_faint_first_sample_keeps_its_importance_in_float32(alpha):
-    # T = 1 - alpha rounds to 1 (in float64 too at 1e-17), but the sample's importance
-    # I = 30 + ln(alpha) still leads eq. 8e against the next, opaque-ish sample of
-    # importance 0, so a later sample of importance 5 is behind it, not in front
-    a = np.array([alpha, 0.5, 0.5])
-    imp = np.array([30.0, 0.0, 5.0])
-    c = np.eye(3) * a[:, None]
-    want = ref.importance(c, a, imp, [0.3, 0.2, 0.1], 2.0)
-    for dtype in (jnp.float32, jnp.float64):
-        c_, a_, imp_ = (jnp.asarray(x, dtype) for x in (c, a, imp))
-        got = jcomposite(c_, a_, importance=imp_, background=jnp.asarray([0.3, 0.2, 0.1], dtype),
-                         background_importance=jnp.asarray(2.0, dtype))
-        np.testing.assert_allclose(got, want, rtol=1e-5 if dtype == jnp.float32 else 1e-12)
 
 
 def test_grad_under_vmap_equals_batched_grad():
@@ -663,14 +642,13 @@ def test_jaxpr_has_no_python_loop_over_samples():
 
 def test_state_is_a_pytree_usable_by_eqx():
     s = importance_init((3,), jnp.float32)
-    # empty rays: colour 0, transmittance 1, opacity 0, peak importance and offset 0
+    # empty rays: colour 0, transmittance 1, peak importance and offset 0
     want = ImportanceState(color=jnp.zeros((3, 3), jnp.float32),
                            transmittance=jnp.ones(3, jnp.float32),
-                           opacity=jnp.zeros(3, jnp.float32),
                            peak_importance=jnp.zeros(3, jnp.float32),
                            importance_offset=jnp.zeros(3, jnp.float32))
     assert bool(eqx.tree_equal(s, want, typematch=True))
-    assert len(jax.tree_util.tree_leaves(s)) == 5
+    assert len(jax.tree_util.tree_leaves(s)) == 4
     doubled = jax.tree_util.tree_map(lambda x: 2 * x + 1, s)
     assert isinstance(doubled, ImportanceState)
     np.testing.assert_array_equal(doubled.transmittance, 3.0)

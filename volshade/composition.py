@@ -28,7 +28,7 @@ accumulated colour and opacity down just enough for the sample to be seen; see
 **Gradients.** The renderer lets JAX differentiate the steps (inside its
 checkpointed scan). :func:`composite` runs importance-aware compositing under a
 hand-derived reverse-mode adjoint of the whole scan instead: per sample it stores
-the accumulated colour, $T_i$, $\alpha_i$ and the importance gap, and the backward scan is scalar
+the accumulated colour, $T_i$ and the importance gap, and the backward scan is scalar
 per ray, with the colour work done in one vectorised pass outside it. Its
 gradients equal JAX's reverse mode through :func:`importance_step` (tested to
 rounding, hard cases included); forward mode (``jax.jvp``) is not available there.
@@ -118,20 +118,18 @@ class ImportanceState(NamedTuple):
     that importance gaps are differences of input values and small offsets:
     float32 stays accurate even for importances around $10^4$.
 
-    The accumulated opacity $\alpha_i$ is carried beside $T_i = 1 - \alpha_i$
-    rather than taken as $1 - T_i$: a faint sample ($\alpha_s$ below half the
-    dtype's epsilon, 6e-8 in float32) leaves $T = 1$ after rounding but still sets
-    $I_i = K_i + \ln\alpha_i$, which dominates eq. 8e wherever its importance
-    exceeds the others' by more than $-\ln\alpha_s$. Each is accurate where it is
-    small. Derivatives take $\alpha_i$ as $1 - T_i$ (they are equal in exact
-    arithmetic), so the cotangent of ``opacity`` is passed on to ``transmittance``.
+    The accumulated opacity is $1 - T_i$, so a first sample fainter than half the
+    dtype's epsilon (6e-8 in float32, 1e-16 in float64) leaves the ray empty, and
+    its importance is not accumulated: where it exceeds the next samples' by more
+    than $-\ln\alpha_s$ (about 17 for 6e-8), eq. 8e in exact arithmetic would let it
+    lead. Carrying $\alpha_i$ apart would keep it, but $K$ would then move by
+    $1/\alpha_i$ per unit of that opacity, and the gradients w.r.t. it would
+    amplify rounding as much.
 
     Attributes:
         color: ``(..., 3)`` accumulated opacity-weighted colour $C_i$ (eq. 8d).
         transmittance: ``(...)`` $T_i = 1 - \alpha_i$, updated exactly as in
             standard compositing (eq. 8c).
-        opacity: ``(...)`` accumulated opacity $\alpha_i$ (eq. 8c, as
-            $\alpha_{i+1} = \alpha_i + T_i \alpha_s$).
         peak_importance: ``(...)`` $P_i$, the largest importance of a sample with
             $\alpha_s > 0$ so far (0 on an empty ray, unused there).
         importance_offset: ``(...)`` $\delta_i = K_i - P_i \le 0$.
@@ -139,30 +137,28 @@ class ImportanceState(NamedTuple):
 
     color: Array
     transmittance: Array
-    opacity: Array
     peak_importance: Array
     importance_offset: Array
 
     @property
+    def opacity(self) -> Array:
+        r"""Accumulated opacity $\alpha_i = 1 - T_i$ (eq. 8c), ``(...)``."""
+        return 1 - self.transmittance
+
+    @property
     def accumulated_importance(self) -> Array:
         r"""The paper's accumulated importance $I_i = K_i + \ln\alpha_i$ ($-\infty$ if empty)."""
-        alpha = _opacity(self)
+        alpha = self.opacity
         nonempty = alpha > 0
         k = self.peak_importance + self.importance_offset
         return jnp.where(nonempty, k + jnp.log(jnp.where(nonempty, alpha, 1)), -jnp.inf)
 
 
-def _opacity(state: ImportanceState) -> Array:
-    r"""``state.opacity``, differentiated as $1 - T$ (see :class:`ImportanceState`)."""
-    return value_and_tangent(state.opacity, 1 - state.transmittance)
-
-
 def importance_init(batch_shape: tuple[int, ...], dtype) -> ImportanceState:
-    """Empty rays: colour 0, transmittance 1, opacity 0, importance state 0 (unused until a
-    sample lands)."""
+    """Empty rays: colour 0, transmittance 1, importance state 0 (unused until a sample lands)."""
     zeros = jnp.zeros(batch_shape, dtype)
     return ImportanceState(jnp.zeros((*batch_shape, 3), dtype), jnp.ones(batch_shape, dtype),
-                           zeros, zeros, zeros)
+                           zeros, zeros)
 
 
 def _gap(state: ImportanceState, importance: Array, active: Array) -> Array:
@@ -197,7 +193,7 @@ def modulation(state: ImportanceState, importance: ArrayLike) -> Array:
         ``(...)`` modulation factor in [0, 1].
     """
     importance = jnp.asarray(importance, state.transmittance.dtype)
-    return jnp.exp(_log_modulation(_gap(state, importance, state.opacity > 0)))
+    return jnp.exp(_log_modulation(_gap(state, importance, state.transmittance < 1)))
 
 
 class _Gap(NamedTuple):
@@ -212,7 +208,7 @@ class _Gap(NamedTuple):
 
 def _importance_gap(state: ImportanceState, importance: Array) -> _Gap:
     """:class:`_Gap` of ``state`` and a sample importance; an empty ray adopts ``importance``."""
-    nonempty = state.opacity > 0                     # as in _step_terms
+    nonempty = 1 - state.transmittance > 0           # as in _step_terms
     zero = jnp.zeros_like(state.transmittance)
     offset = jnp.where(nonempty, state.importance_offset, zero)
     to_peak = jnp.where(nonempty, importance - state.peak_importance, zero)
@@ -222,7 +218,7 @@ def _importance_gap(state: ImportanceState, importance: Array) -> _Gap:
 class _StepTerms(NamedTuple):
     """Intermediate values of one importance step, shared by the step and its adjoint."""
 
-    alpha_acc: Array    # alpha_i (= 1 - T_i, held apart)
+    alpha_acc: Array    # alpha_i = 1 - T_i
     nonempty: Array     # alpha_i > 0
     visible: Array      # alpha' above sqrt(tiny): the step's divisions are taken
     blend: Array        # nonempty and visible: the colour weights of eq. 8a-8d apply
@@ -236,27 +232,25 @@ class _StepTerms(NamedTuple):
     a: Array            # m alpha_i
     one_minus_a: Array  # T_i + (1 - m) alpha_i
     inv_p: Array        # 1 / alpha' (1 where not visible)
-    alpha_new: Array    # alpha_{i+1} = alpha_i + T_i alpha_s (alpha_i where not visible)
+    alpha_new: Array    # alpha_{i+1} = 1 - T_{i+1}
     p: Array            # weight of the accumulated colour C_i
     q: Array            # weight of the sample colour C_s
     excess: Array       # (y - a)^+
     num: Array          # a + alpha_s (y - a)^+ = alpha_{i+1} e^{K_{i+1} - M}
-    inv_n: Array        # 1 / alpha_{i+1} (1 where not visible)
+    inv_n: Array        # 1 / alpha_{i+1} (1 where not visible or alpha_{i+1} = 0)
     ok: Array           # the log of eq. 8e is taken
     log_ratio: Array    # K_{i+1} - M
     transmittance: Array
 
 
-def _step_terms(
-    t_acc: Array, alpha_acc: Array, gap: Array, at_peak: Array, alpha_s: Array
-) -> _StepTerms:
+def _step_terms(t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array) -> _StepTerms:
     r"""The per-ray algebra of :func:`importance_step`, double-``where`` safe throughout.
 
-    Needs only $T_i$, $\alpha_i$, the gap $K_i - I_s$, whether $I_s \ge P_i$ and
-    $\alpha_s$.
+    Needs only $T_i$, the gap $K_i - I_s$, whether $I_s \ge P_i$ and $\alpha_s$.
     """
     one = jnp.ones_like(t_acc)
     zero = jnp.zeros_like(t_acc)
+    alpha_acc = 1 - t_acc
     nonempty = alpha_acc > 0
     # A tie K_i = I_s (a kink) counts as behind: the side of an opaque sample of importance
     # I_s that made K = I_s, where any opacity below 1 puts the next equal importance behind.
@@ -270,14 +264,12 @@ def _step_terms(
     one_minus_a = t_acc + (1 - m) * alpha_acc
     alpha_p = a + alpha_s * one_minus_a                # eq. 8b; alpha_s on an empty ray
     t_new = t_acc * (1 - alpha_s)                      # eq. 8c
-    # alpha' below sqrt(tiny) (1e-19 in float32) needs alpha_s and a below it, which
-    # cannot change T: such a step changes nothing (alpha is kept too, so that K and alpha
-    # stay paired; a nonempty ray thus has alpha_i > sqrt(tiny)), and 1 / alpha'^2 in the
-    # gradient stays finite. alpha_s = 0 behind a nonempty ray is visible (alpha' = a):
-    # its gradient is the one-sided limit, not cut to 0.
+    alpha_new = 1 - t_new
+    # alpha' below sqrt(tiny) (1e-19 in float32) needs alpha_s below 2 sqrt(tiny), which
+    # cannot change T: such a step changes nothing, and 1 / alpha'^2 in the gradient stays
+    # finite. alpha_s = 0 behind a nonempty ray is visible (alpha' = a): its gradient is
+    # the one-sided limit, not cut to 0.
     visible = alpha_p > jnp.sqrt(tiny(alpha_p))
-    alpha_new = value_and_tangent(jnp.where(visible, alpha_acc + t_acc * alpha_s, alpha_acc),
-                                  1 - t_new)
     blend = nonempty & visible
     take_sample = (visible & new_peak) | ~nonempty
     inv_p = 1 / jnp.where(visible, alpha_p, one)
@@ -291,14 +283,15 @@ def _step_terms(
     p = jnp.where(blend, jnp.where(direct, m * alpha_new * inv_p, 1 - alpha_s * (1 - m) * inv_p),
                   one)
     q = jnp.where(blend, alpha_new * one_minus_a * inv_p, jnp.where(nonempty, zero, t_acc))
-    # eq. 8e: K_{i+1} = M + log(num / alpha_{i+1}), taken where the step is visible (then
-    # alpha_{i+1} >= alpha' > 0); K is kept elsewhere.
+    # eq. 8e: K_{i+1} = M + log(num / alpha_{i+1}). alpha_{i+1} is 0 where an empty ray
+    # meets alpha_s < eps / 2 (T stays 1); K is kept there.
     # (y - a)^+ at y = a (an opaque sample tied with the next importance) on the side that
     # an opacity below 1 gives, as `ahead` is
     excess = jnp.where(y >= a, y - a, zero)
     num = a + alpha_s * excess
-    inv_n = 1 / jnp.where(visible, alpha_new, one)
-    ok = visible & (num > 0)                           # then num * inv_n >= num > 0
+    n_ok = visible & (alpha_new > 0)
+    inv_n = 1 / jnp.where(n_ok, alpha_new, one)
+    ok = n_ok & (num > 0)                              # then num * inv_n >= num > 0
     log_ratio = jnp.log(jnp.where(ok, num * inv_n, one))
     return _StepTerms(alpha_acc, nonempty, visible, blend, direct, ahead, new_peak, take_sample,
                       g, m, y, a, one_minus_a, inv_p, alpha_new, p, q, excess, num, inv_n, ok,
@@ -307,7 +300,7 @@ def _step_terms(
 
 def _step(state: ImportanceState, sample: Sample, gp: _Gap) -> ImportanceState:
     """:func:`importance_step` given the sample's :class:`_Gap`."""
-    tm = _step_terms(state.transmittance, _opacity(state), gp.gap, gp.at_peak, sample.alpha)
+    tm = _step_terms(state.transmittance, gp.gap, gp.at_peak, sample.alpha)
     color = _expand(tm.p) * state.color + _expand(tm.q) * sample.color
     peak = jnp.where(tm.take_sample, sample.importance, state.peak_importance)
     # M - P_{i+1} = delta_i (ahead), 0 (a new peak) or I_s - P_i (behind, below the peak).
@@ -323,7 +316,7 @@ def _step(state: ImportanceState, sample: Sample, gp: _Gap) -> ImportanceState:
     color = value_and_tangent(jnp.where(_expand(zero_alpha), state.color, color), color)
     peak = value_and_tangent(jnp.where(zero_alpha, state.peak_importance, peak), peak)
     offset = value_and_tangent(jnp.where(zero_alpha, state.importance_offset, offset), offset)
-    return ImportanceState(color, tm.transmittance, tm.alpha_new, peak, offset)
+    return ImportanceState(color, tm.transmittance, peak, offset)
 
 
 def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
@@ -343,9 +336,8 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
 
     ($p$ is exactly 1 where $\alpha_s = 0$ or $m = 1$), and on an empty ray the
     step is standard compositing, $C_1 = C_0 + T_0 C_s$, which needs no division
-    by $\alpha_s$. The state carries $C$, the transmittance $T = 1 - \alpha$
-    (eq. 8c is the standard update, bit for bit), the opacity $\alpha$ apart
-    (accurate where $T$ rounds to 1) and $K = I - \ln\alpha$
+    by $\alpha_s$. The state carries $C$, the exact transmittance $T = 1 - \alpha$
+    (eq. 8c is the standard update, bit for bit) and $K = I - \ln\alpha$
     (see :class:`ImportanceState`). The paper gives no initial importance $I_0$;
     an empty ray ($\alpha_0 = 0$) is taken as $I_0 = -\infty$, the value its
     eq. 6a/7 derivation implies, so the first sample gives
@@ -360,8 +352,8 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     $[e^{-|K_i - I_s|}, 1]$: no exp overflows for any importance gap and no
     division by zero happens (the divisions are taken where $\alpha'$ exceeds
     $\sqrt{\text{tiny}}$ of the dtype, $10^{-19}$ in float32, which a step with a
-    smaller $\alpha'$ cannot change, and leaves the state as it is, $\alpha$
-    included: a nonempty ray has $\alpha_i > \sqrt{\text{tiny}}$). Every
+    smaller $\alpha'$ cannot change; the only zero $\alpha_{i+1}$ is on an empty
+    ray meeting a sample too faint to change $T = 1$, where $K$ is kept). Every
     guarded operation uses the double-``where`` idiom, so gradients are finite at
     $\alpha_s = 0$ and 1 and for importance gaps of $10^4$; at $\alpha_s = 0$ and
     1 they are the one-sided derivatives (an opacity cannot leave [0, 1]), of
@@ -414,13 +406,13 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
 
 
 def _importance_step_adjoint(
-    t_acc: Array, alpha_acc: Array, gap: Array, at_peak: Array, alpha_s: Array, lam_t_new: Array,
+    t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array, lam_t_new: Array,
     lam_k_new: Array, lam_p: Array, lam_q: Array,
 ) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
     r"""Reverse-mode adjoint of :func:`importance_step`, derived by hand, per ray.
 
     The step is recomputed from what :func:`_importance_scan` stores per step
-    ($T_i$, $\alpha_i$, the gap $K_i - I_s$, whether $I_s \ge P_i$) and $\alpha_s$, and the
+    ($T_i$, the gap $K_i - I_s$, whether $I_s \ge P_i$) and $\alpha_s$, and the
     cotangents of the new state are pulled back through it in reverse order,
     with the same branch choices (every ``where`` of the forward pass selects the
     same branch here) and the same straight-through clamp, so the result equals
@@ -441,7 +433,7 @@ def _importance_step_adjoint(
         cotangents of $T_i$, of $P_i$ and of $\delta_i$ (equal), of $\alpha_s$ and
         of $I_s$, where $P_{i+1} = I_s$, and the colour weights.
     """
-    tm = _step_terms(t_acc, alpha_acc, gap, at_peak, alpha_s)
+    tm = _step_terms(t_acc, gap, at_peak, alpha_s)
     zero = jnp.zeros_like(alpha_s)
     # offset = where(ok, base + log(num * inv_n), offset_i),
     # base = where(ahead, offset_i, where(new_peak, 0, to_peak)); peak = where(take, I_s, P_i)
@@ -470,10 +462,10 @@ def _importance_step_adjoint(
     lam_a = lam_a + lam_alpha_p
     lam_oma = lam_qb * tm.alpha_new * tm.inv_p + lam_alpha_p * alpha_s
     lam_alpha = lam_alpha + lam_alpha_p * tm.one_minus_a
-    # alpha_{i+1} is differentiated as 1 - T_{i+1}, T_{i+1} = T_i (1 - alpha_s)
+    # alpha_{i+1} = 1 - T_{i+1}, T_{i+1} = T_i (1 - alpha_s)
     lam_t_n = lam_t_new - lam_alpha_new
     lam_alpha = lam_alpha - lam_t_n * t_acc
-    # a = m alpha_i, 1 - a = T_i + (1 - m) alpha_i, alpha_i differentiated as 1 - T_i
+    # a = m alpha_i, 1 - a = T_i + (1 - m) alpha_i, alpha_i = 1 - T_i
     lam_m = lam_m + (lam_a - lam_oma) * tm.alpha_acc
     lam_alpha_acc = lam_oma * (1 - tm.m) + lam_a * tm.m
     lam_t = (lam_t_n * (1 - alpha_s) + lam_oma - lam_alpha_acc
@@ -508,7 +500,7 @@ def _importance_scan(
 
     ``colors`` ``(..., S, 3)``, ``alphas`` and ``importance`` ``(..., S)``, front first.
     Reverse mode is hand-written (forward mode is not available): the forward
-    pass stores, per step, the colour $C_i$, $T_i$, $\alpha_i$, the gap
+    pass stores, per step, the colour $C_i$, $T_i$, the gap
     $K_i - I_s$ and whether $I_s \ge P_i$; the backward pass is a reverse
     ``lax.scan`` of :func:`_importance_step_adjoint`. Since the colour update is
     linear with scalar weights, the colour cotangent before step $i$ is
@@ -524,7 +516,7 @@ def _importance_scan(
 def _importance_scan_fwd(state, colors, alphas, importance, unroll):
     def body(s, x):
         gp = _importance_gap(s, x.importance)
-        return _step(s, x, gp), (s.color, s.transmittance, s.opacity, gp.gap, gp.at_peak)
+        return _step(s, x, gp), (s.color, s.transmittance, gp.gap, gp.at_peak)
 
     samples = _samples(colors, alphas, importance)
     final, stored = jax.lax.scan(body, state, samples, unroll=unroll)
@@ -532,32 +524,29 @@ def _importance_scan_fwd(state, colors, alphas, importance, unroll):
 
 
 def _importance_scan_bwd(unroll, residuals, cotangent):
-    (color_acc, t_acc, alpha_acc, gap, at_peak), alphas, colors = residuals
+    (color_acc, t_acc, gap, at_peak), alphas, colors = residuals
     lam = cotangent.color                                               # (..., 3)
     dot_acc = _dot3(color_acc, lam[None])                               # (S, ...) lam . C_i
     dot_sample = jnp.moveaxis(_dot3(colors, lam[..., None, :]), -1, 0)  # (S, ...) lam . C_s
 
     def body(carry, inputs):
         scale, lam_t, lam_k, lam_p = carry      # scale = W_{i+1}; lam_p acts on P alone
-        t, alpha_i, gp, at, alpha, d_acc, d_sample = inputs
+        t, gp, at, alpha, d_acc, d_sample = inputs
         lam_t, lam_k, lam_alpha, lam_imp, take, p, q = _importance_step_adjoint(
-            t, alpha_i, gp, at, alpha, lam_t, lam_k, scale * d_acc, scale * d_sample)
+            t, gp, at, alpha, lam_t, lam_k, scale * d_acc, scale * d_sample)
         zero = jnp.zeros_like(lam_p)
         lam_imp = lam_imp + jnp.where(take, lam_p, zero)
         return (p * scale, lam_t, lam_k, jnp.where(take, zero, lam_p)), \
             (q * scale, lam_alpha, lam_imp)
 
-    # lam_P P + lam_delta delta = lam_delta K + (lam_P - lam_delta) P; alpha is
-    # differentiated as 1 - T
-    carry = (jnp.ones_like(cotangent.transmittance),
-             cotangent.transmittance - cotangent.opacity,
+    # lam_P P + lam_delta delta = lam_delta K + (lam_P - lam_delta) P
+    carry = (jnp.ones_like(cotangent.transmittance), cotangent.transmittance,
              cotangent.importance_offset,
              cotangent.peak_importance - cotangent.importance_offset)
     (scale, lam_t, lam_k, lam_p), (color_scale, lam_alpha, lam_imp) = jax.lax.scan(
-        body, carry, (t_acc, alpha_acc, gap, at_peak, alphas, dot_acc, dot_sample), reverse=True,
+        body, carry, (t_acc, gap, at_peak, alphas, dot_acc, dot_sample), reverse=True,
         unroll=unroll)
-    lam_state = ImportanceState(_expand(scale) * lam, lam_t, jnp.zeros_like(lam_t), lam_k + lam_p,
-                                lam_k)
+    lam_state = ImportanceState(_expand(scale) * lam, lam_t, lam_k + lam_p, lam_k)
     lam_colors = _expand(jnp.moveaxis(color_scale, 0, -1)) * lam[..., None, :]
     return (lam_state, lam_colors, jnp.moveaxis(lam_alpha, 0, -1),
             jnp.moveaxis(lam_imp, 0, -1))
@@ -579,8 +568,7 @@ def importance_finish(
     i.e. RGBA of the (possibly faded) volume premultiplied over the background.
     A low-importance volume fades to the background as $I_{bg}$ grows;
     $I_{bg} = -\infty$ (the default) never fades it and gives the standard
-    $C_n + T_n c_{bg}$ with alpha $= \alpha_n$ ($1 - T_n$ of eq. 8c, up to
-    rounding; accurate where $T_n$ rounds to 1).
+    $C_n + T_n c_{bg}$ with alpha $= 1 - T_n$ (eq. 8c).
 
     Args:
         state: :class:`ImportanceState` after the last sample.
@@ -594,7 +582,7 @@ def importance_finish(
     """
     c_acc, t_acc = state.color, state.transmittance
     dtype = t_acc.dtype
-    alpha_acc = _opacity(state)
+    alpha_acc = 1 - t_acc
     i_bg = jnp.broadcast_to(jnp.asarray(background_importance, dtype), t_acc.shape)
     active = (alpha_acc > 0) & (i_bg > -jnp.inf)
     m = jnp.exp(_log_modulation(_gap(state, i_bg, active)))
