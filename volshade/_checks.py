@@ -142,10 +142,15 @@ def scalar(x: Any, name: str, where: str) -> Array:
     return arr
 
 
+def traced(x: Any) -> bool:
+    """Whether ``x`` is, or holds (a sequence, a pytree), a tracer."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(x))
+
+
 def concrete(x: Any) -> np.ndarray | None:
     """``x`` as a NumPy array when its value is known at trace time, else None (a tracer,
     or a sequence holding one)."""
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(x)):
+    if traced(x):
         return None
     return np.asarray(x)
 
@@ -281,7 +286,7 @@ def positive_float(value: Any, name: str, where: str) -> float:
 
 def spacing(value: Any, where: str) -> tuple[float, float, float]:
     """Voxel spacing ``(sd, sh, sw)`` in millimetres: a positive scalar or 3-sequence."""
-    if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(value)):
+    if traced(value):
         raise TypeError(f"{where}: `spacing` is static (it sets kernels and sample "
                         f"positions) and cannot be traced; close over it instead of passing "
                         f"it as a `jit` argument.")

@@ -597,6 +597,18 @@ def _concrete(x) -> float | None:
     return float(arr)
 
 
+def _divided(x, divisor, xp):
+    """``x / divisor`` for a scale ``divisor > 0`` that the caller's result does not
+    depend on (held constant): on the host for NumPy arrays, and traced as a product,
+    twice, with the reciprocal of its square root. XLA on a CPU divides through the
+    reciprocal, which for a divisor above 8.5e37 is subnormal and flushed to zero (and
+    it turns ``x / r / r`` into ``x / r^2``)."""
+    if xp is np:
+        return x / divisor
+    inv_root = lax.stop_gradient(1 / jnp.sqrt(divisor))
+    return x * inv_root * inv_root
+
+
 def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
     if isinstance(directions, int | np.integer) and not isinstance(directions, bool):
         if directions < 1:
@@ -625,14 +637,9 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
                           where)
     # the squares of (0, 0, 1e20) overflow float32 (which made it a zero direction) and
     # those of (0, 0, 1e-30) underflow: such vectors are divided by their largest
-    # component first (others are not, so that a unit vector stays exactly as given);
-    # traced ones twice by the reciprocal of its square root, as the weights below
+    # component first (others are not, so that a unit vector stays exactly as given)
     extreme = ((peak < 1e-15) & (peak > 0)) | (peak > 1e15)
-    if xp is np:
-        dirs = dirs / np.where(extreme, peak, 1)
-    else:
-        inv_root = 1 / jnp.sqrt(jnp.where(extreme, peak, 1))
-        dirs = dirs * inv_root * inv_root
+    dirs = _divided(dirs, xp.where(extreme, peak, 1), xp)
     # 0 only for a refused zero row, kept finite
     norm = xp.sqrt(xp.sum(dirs * dirs, axis=-1, keepdims=True))
     return jnp.asarray(dirs / xp.where(norm == 0, 1, norm), dtype)
@@ -729,21 +736,11 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
         weights = _weights_array(weights, n_dirs, where).astype(dtype)
         xp, w = _checks.for_check(weights)
         peak = xp.max(w)
-        weights = _checks.refuse(
-            weights, [(~xp.all(xp.isfinite(w)) | xp.any(w < 0) | ~(peak > 0),
-                       "`weights` must be finite, >= 0 and not all zero.")], where)
-        # w / sum(w) through w / max(w): a float32 sum of weights of 1e38 overflows, and
-        # XLA on a CPU divides through the reciprocal, which for a divisor above 8.5e37
-        # is subnormal and flushed to zero (and it turns w / r / r into w / r^2). Known
-        # weights are scaled on the host, traced ones twice by the reciprocal of the
-        # peak's square root, held constant (the quotient does not depend on it).
-        if xp is np:
-            scaled = w / np.where(peak > 0, peak, 1)
-            weights = jnp.asarray(scaled / np.sum(scaled), weights.dtype)
-        else:
-            inv_root = lax.stop_gradient(1 / jnp.sqrt(jnp.where(peak > 0, peak, 1)))
-            scaled = weights * inv_root * inv_root
-            weights = scaled / jnp.sum(scaled)
+        w = _checks.refuse(w, [(~xp.all(xp.isfinite(w)) | xp.any(w < 0) | ~(peak > 0),
+                                "`weights` must be finite, >= 0 and not all zero.")], where)
+        # w / sum(w) through w / max(w): a float32 sum of weights of 1e38 overflows
+        scaled = _divided(w, xp.where(peak > 0, peak, 1), xp)
+        weights = jnp.asarray(scaled / xp.sum(scaled), weights.dtype)
 
     bound = max_radius if max_radius is not None else r_value
     # a padding as wide as the (brick-aligned) volume makes clamped reads land in zeros

@@ -28,7 +28,6 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -147,7 +146,7 @@ class TransferFunction(eqx.Module):
                 constructor takes those).
         """
         where = "volshade.TransferFunction.from_points"
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(points)):
+        if _checks.traced(points):
             raise TypeError(f"{where}: `points` is traced (inside jit, grad or vmap), and "
                             f"from_points checks its rows when it is called; build "
                             f"`TransferFunction(points[:, 0], points[:, 1:4], points[:, 4])`,"
