@@ -3,6 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import volshade as vs
 from volshade import _numerics as nm
 
 
@@ -71,6 +72,29 @@ def test_safe_sqrt_norm_normalize_at_zero():
     jac = jax.jacrev(nm.safe_normalize)(jnp.zeros(3))
     assert np.all(np.isfinite(jac))
     np.testing.assert_allclose(nm.safe_normalize(jnp.array([3.0, 0, 4])), [0.6, 0, 0.8])
+
+
+@pytest.mark.parametrize("scale", [1e20, 3e38])
+def test_safe_normalize_of_a_huge_vector(scale):
+    # found by a review: float32 |x|^2 overflowed above 1.8e19 and x / inf gave the zero
+    # vector (obscurance_shading of such a gradient: 0, not 1)
+    x = jnp.asarray([3.0, 0.0, 4.0], jnp.float32)
+    big = x * jnp.float32(scale / 4)
+    np.testing.assert_allclose(nm.safe_normalize(big), [0.6, 0, 0.8], rtol=1e-6)
+    # the direction is scale-invariant, so its Jacobian at c x is that at x over c (at
+    # 3e38 that is below float32's normal numbers)
+    jac = jax.jacrev(nm.safe_normalize)
+    if scale < 1e30:
+        np.testing.assert_allclose(np.asarray(jac(big), np.float64) * (scale / 4),
+                                   jac(x), rtol=1e-5, atol=1e-7)
+    assert np.all(np.isfinite(jac(big)))
+    shade = vs.obscurance_shading(big[None], jnp.asarray([0.6, 0, 0.8]),
+                                  jnp.asarray([0.6, 0, 0.8]), jnp.asarray([1.0]),
+                                  k_d=0.6, k_s=0.4, shininess=8.0)
+    np.testing.assert_allclose(shade, [1.0], rtol=1e-6)
+    # components of at most 1 are not rescaled: the same bits as before
+    small = jnp.asarray([0.3, -1.0, 0.5], jnp.float32)
+    np.testing.assert_array_equal(nm.safe_normalize(small), small / jnp.linalg.norm(small))
 
 
 def test_correct_opacity_exact_ends_and_composition_law():

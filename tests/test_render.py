@@ -264,12 +264,14 @@ def test_no_nan_gradients_on_edge_volumes(shading):
             assert np.all(np.abs(leaf) < 1e3)
 
 
-@pytest.mark.parametrize("units", [1e20, 1e30])
-def test_a_volume_in_huge_units_keeps_its_normals(units):
+@pytest.mark.parametrize("name, units", [("shells", 1e20), ("shells", 1e30), ("corner", 3e38)])
+def test_a_volume_in_huge_units_keeps_its_normals(name, units):
     # float32: |gradient|^2 overflows above 1e19, which would leave every sample without
-    # a normal (Phong's ambient term only). (Tiny units fail earlier: jnp.interp takes
-    # control points closer than about 1e-14 in float32 as one point.)
-    vol = vs.data.phantom("shells", shape=12)
+    # a normal (Phong's ambient term only); the corner's walls at 3e38 give a gradient of
+    # 1.5e38, whose reciprocal XLA on a CPU flushed to 0 (no normal either). (Tiny units
+    # fail earlier: jnp.interp takes control points closer than about 1e-14 in float32
+    # as one point.)
+    vol = vs.data.phantom(name, shape=12)
     points = [(0.0, 1, 1, 1, 0.0), (0.5, 1, 0.8, 0.6, 0.4), (1.0, 1, 1, 1, 0.9)]
     cam = Camera.orbit(azimuth=30.0, elevation=20.0, image_shape=(8, 8))
     images = [march(vol * scale, TransferFunction.from_points(

@@ -116,8 +116,6 @@ def test_saliency_does_not_depend_on_the_scale_of_the_field(scale):
     big = jnp.asarray([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]], jnp.float32) * jnp.float32(scale)
     np.testing.assert_allclose(np.asarray(gradient_magnitude(big)),
                                [5 * scale, 0.0], rtol=1e-6)
-    # an infinite component keeps an infinite norm (inf / inf would be NaN)
-    assert float(gradient_magnitude(jnp.asarray([jnp.inf, 0.0, 0.0]))) == np.inf
 
 
 def test_saliency_grad_and_jit():

@@ -4,9 +4,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import check_grad_fd
+from jax.test_util import check_grads
 from reference_gradient import regression_gradient_reference
 
-from volshade.gradient import regression_gradient, regression_kernel
+from volshade.gradient import gradient_magnitude, regression_gradient, regression_kernel
 from volshade.sampling import trilinear
 
 
@@ -168,3 +169,77 @@ def test_regression_gradient_is_exactly_zero_where_the_volume_is_flat(size):
     assert float(jnp.min(jnp.abs(g[6 - h:6 + h, ..., 0]))) > 0
     g32 = regression_gradient(jnp.full((5, 5, 5), 0.1, jnp.float32), size=size)
     assert np.all(np.asarray(g32) == 0)
+
+
+@pytest.mark.parametrize("scale", [1e-35, 1e-20, 2.0**70, 3e38])
+def test_regression_gradient_of_a_volume_in_tiny_or_huge_units(scale):
+    # found by a review: in float32 the weighted differences of a volume in units of
+    # 1e-35 fell to subnormals (flushed on a CPU: 1e-2 relative error, all zeros at
+    # 1e-36), and +-3e38 overflowed them to inf. The volume is now taken to unit size by
+    # a power of two, so the gradient is that of the float64 volume to float32 rounding,
+    # and scaling by a power of two commutes with it exactly.
+    rng = np.random.default_rng(4)
+    vol = jnp.asarray((0.5 + rng.random((7, 7, 7))) * rng.choice([-1, 1], (7, 7, 7)),
+                      jnp.float32) * jnp.float32(scale / 1.5)
+    got = regression_gradient(vol)
+    ref = regression_gradient(vol.astype(jnp.float64))
+    assert got.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(got)))
+    # (below float32's smallest normal number, 1.2e-38, a CPU flushes the result to 0)
+    atol = max(1e-6 * float(jnp.max(jnp.abs(ref))), float(jnp.finfo(jnp.float32).tiny))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=atol)
+    unit = jnp.asarray(vol / jnp.float32(scale), jnp.float32)
+    if scale == 2.0**70:
+        np.testing.assert_array_equal(got, regression_gradient(unit) * jnp.float32(scale))
+    # linear in the volume: the derivative does not depend on the units either
+    w = jnp.asarray(rng.normal(size=(7, 7, 7, 3)), jnp.float32)
+    grads = [jax.grad(lambda v: jnp.sum(w * regression_gradient(v)))(v) for v in (vol, unit)]
+    np.testing.assert_allclose(grads[0], grads[1], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("spacing", [1e-120, 1e200, (1e-120, 3e-120, 1e-121)])
+def test_regression_gradient_with_extreme_spacing(spacing):
+    # found by a review: sum(w x^2) of the kernel, growing as spacing^3, underflowed to 0
+    # or overflowed (a 0 / 0 or inf / inf kernel: NaN gradients). The gradient is per mm,
+    # so it scales as 1 / spacing
+    vol = jnp.asarray(np.random.default_rng(5).random((6, 6, 6)))
+    unit = np.asarray(spacing) / np.max(spacing)
+    for size in (3, 5):
+        got = regression_gradient(vol, spacing=spacing, size=size) * np.max(spacing)
+        np.testing.assert_allclose(got, regression_gradient(vol, spacing=tuple(unit) if
+                                                            unit.ndim else 1.0, size=size),
+                                   rtol=1e-12, atol=1e-15)
+    # and its checks name the function called
+    with pytest.raises(ValueError, match="volshade.gradient.regression_gradient: `size`"):
+        regression_gradient(vol, spacing=spacing, size=4)
+
+
+def test_gradient_magnitude_of_huge_components_and_its_checks():
+    # found by a review: XLA on a CPU divides by a broadcast value through its
+    # reciprocal, subnormal (flushed to 0) for a divisor above 8.5e37: a float32
+    # component of 1e38 had magnitude 0, and made the scaled field all zeros
+    g = jnp.asarray([[1e38, 0.0, 0.0], [3.0, 4.0, 0.0], [0.0, 0.0, 0.0]], jnp.float32)
+    np.testing.assert_allclose(gradient_magnitude(g), [1e38, 5.0, 0.0], rtol=1e-6)
+    np.testing.assert_allclose(jax.jit(lambda g: gradient_magnitude(g, scaled=True))(g),
+                               [1.0, 5e-38, 0.0], rtol=1e-5)
+    # the derivative is the unit vector, not p (d|g/p|), which took a cotangent of 10
+    # through 10 p = inf first
+    np.testing.assert_allclose(jax.grad(lambda g: 10 * jnp.sum(gradient_magnitude(g)))(g),
+                               [[10.0, 0, 0], [6.0, 8.0, 0], [0, 0, 0]], rtol=1e-6)
+    tiny = jnp.asarray([[3e-30, -4e-30, 0.0]], jnp.float32)  # |g|^2 underflows
+    np.testing.assert_allclose(jax.grad(lambda g: jnp.sum(gradient_magnitude(g)))(tiny),
+                               [[0.6, -0.8, 0.0]], rtol=1e-6)
+    g64 = jnp.asarray(np.random.default_rng(6).normal(size=(4, 3)))
+    check_grads(gradient_magnitude, (g64,), order=2, modes=["fwd", "rev"])
+    where = "volshade.gradient.gradient_magnitude"
+    for bad in (jnp.asarray([[jnp.nan, 0.0, 0.0]]), jnp.asarray([jnp.inf, 1.0, 0.0])):
+        with pytest.raises(ValueError, match=f"{where}: `gradient` contains NaN or inf"):
+            gradient_magnitude(bad)
+        with pytest.raises(Exception, match="`gradient` contains NaN or inf"):
+            jax.jit(gradient_magnitude)(bad)
+    with pytest.raises(ValueError, match=f"{where}: `gradient` must have at least one axis"):
+        gradient_magnitude(jnp.asarray(3.0))
+    with pytest.raises(ValueError, match=f"{where}: `gradient` is empty"):
+        gradient_magnitude(jnp.zeros((0, 3)), scaled=True)
+    assert gradient_magnitude(jnp.zeros((0, 3))).shape == (0,)
+    with pytest.raises(TypeError, match="`gradient`"):
+        gradient_magnitude("x")

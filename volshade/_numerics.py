@@ -108,14 +108,33 @@ def safe_norm(x: ArrayLike, axis: int = -1, keepdims: bool = False) -> Array:
     return safe_sqrt(jnp.sum(x * x, axis=axis, keepdims=keepdims))
 
 
+def scaled_down(x: ArrayLike, scale: ArrayLike) -> Array:
+    """``x / scale`` for a ``scale > 0`` that the caller holds constant, as a product
+    with the reciprocal of its square root, twice.
+
+    XLA on a CPU divides by a broadcast value through its reciprocal, which for a
+    ``scale`` above about 8.5e37 (float32) is subnormal and flushed to zero: ``x /
+    scale`` would be 0. The square root's reciprocal stays a normal number.
+    """
+    inv_root = lax.stop_gradient(1 / jnp.sqrt(jnp.asarray(scale)))
+    return jnp.asarray(x) * inv_root * inv_root
+
+
 def safe_normalize(x: ArrayLike, axis: int = -1) -> Array:
     """``x / |x|`` along ``axis``; the zero vector maps to the zero vector (finite gradient).
 
-    A vector whose ``|x|^2`` underflows (``|x|`` below about ``1e-19`` in float32,
-    ``1e-154`` in float64) is taken as the zero vector too, deliberately: its direction's
-    derivative, ``1/|x|``, would overflow. Callers that normalise vectors of arbitrary
-    units (the renderer's gradient volume) scale them first."""
+    A vector with a component above 1 is first divided by its largest one (the direction
+    does not depend on that factor, which is held constant, so the derivative stays
+    exact), so that ``|x|^2`` cannot overflow (float32: ``|x|`` above about ``1.8e19``,
+    which would give the zero vector). A vector whose ``|x|^2`` underflows (``|x|``
+    below about ``1e-19`` in float32, ``1e-154`` in float64) is taken as the zero vector,
+    deliberately: such a vector is typically the rounding noise of a constant
+    neighbourhood's gradient, whose direction is random and whose derivative,
+    ``1/|x|``, is huge. Callers that normalise vectors of arbitrary units (the
+    renderer's gradient volume) scale them first."""
     x = jnp.asarray(x)
+    peak = jnp.max(jnp.abs(x), axis=axis, keepdims=True)
+    x = scaled_down(x, jnp.where(peak > 1, peak, jnp.ones_like(peak)))
     return safe_div(x, safe_norm(x, axis=axis, keepdims=True))
 
 

@@ -27,8 +27,8 @@ import numpy as np
 from jax import lax
 
 from . import _checks
-from ._numerics import safe_div, safe_norm
-from ._types import Array, Float
+from ._numerics import safe_div, safe_norm, safe_normalize, scaled_down, value_and_tangent
+from ._types import Array, ArrayLike, Float
 
 _WEIGHTS = {
     "distance": lambda r: r,
@@ -61,18 +61,26 @@ def regression_kernel(
         weighting: ``"distance"`` (w = |x|, the seeds' choice), ``"inverse_distance"``
             (w = 1/|x|, Neumann et al.'s) or ``"uniform"``.
     """
-    where = "volshade.gradient.regression_kernel"
+    return _kernel(size, spacing, weighting, "volshade.gradient.regression_kernel")
+
+
+def _kernel(size, spacing, weighting: str, where: str) -> np.ndarray:
+    """:func:`regression_kernel`, its errors naming ``where``."""
     _check_size(size, where)
     weight_fn = _checks.option(weighting, _WEIGHTS, "weighting", where)
     sp = np.asarray(_checks.spacing(spacing, where))
+    # in units of the largest spacing, then divided by it: every weighting is
+    # homogeneous, so the kernel scales as 1 / spacing, while sum(w x^2), which grows as
+    # spacing^3, would underflow or overflow for extreme spacings (0 / 0 or inf / inf)
+    unit = sp.max()
     half = size // 2
     grid = np.stack(np.meshgrid(*[np.arange(-half, half + 1)] * 3, indexing="ij"), axis=-1)
-    offsets = grid * sp
+    offsets = grid * (sp / unit)
     weights = weight_fn(np.linalg.norm(offsets, axis=-1))
     kernels = []
     for i in range(3):
         numer = weights * offsets[..., i]
-        kernels.append(numer / np.sum(numer * offsets[..., i]))
+        kernels.append(numer / np.sum(numer * offsets[..., i]) / unit)
     return np.stack(kernels)
 
 
@@ -111,7 +119,7 @@ def regression_gradient(
     """
     where = "volshade.gradient.regression_gradient"
     volume = _checks.volume(volume, "volume", where)
-    regression_kernel(size, spacing=spacing, weighting=weighting)  # its checks, at once
+    _kernel(size, spacing, weighting, where)  # its checks, at once
     return _regression_gradient(volume, size, _checks.spacing(spacing, where), weighting)
 
 
@@ -123,37 +131,66 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
     on its own)."""
     kernel = regression_kernel(size, spacing=spacing, weighting=weighting)
     half = size // 2
-    padded = jnp.pad(volume, half, mode="edge")
+    # A volume in tiny or huge units is taken to unit size by a power of two, and the
+    # gradient back: exact, and so bit for bit the same gradient and derivative, but
+    # the weighted differences no longer underflow to subnormals (flushed to 0 on a
+    # CPU; float32: values below about 1e-33) or overflow (float32: above 1.7e38).
+    # Volumes within 2^(maxexp / 2) of unit size are not scaled at all.
     shape = volume.shape
 
-    def shifted(k):
-        return padded[tuple(slice(half + k[ax], half + k[ax] + shape[ax]) for ax in range(3))]
+    def gradient(volume):
+        padded = jnp.pad(volume, half, mode="edge")
 
-    # The kernels are odd (K_i(-k) = -K_i(k)), so each pair {k, -k} contributes
-    # K_i(k) (f(x + k) - f(x - k)): exactly 0 wherever the neighbourhood is constant.
-    # A convolution's rounding leaves noise there instead, which normalising turns
-    # into random unit normals with huge derivatives. Each difference is taken once.
-    components = [None, None, None]
-    for index in np.ndindex(*kernel.shape[1:]):
-        k = tuple(int(c) - half for c in index)
-        if k <= (0, 0, 0):  # one offset of each pair (lexicographically positive)
-            continue
-        diff = shifted(k) - shifted(tuple(-c for c in k))
-        for i in range(3):
-            weight = float(kernel[(i, *index)])
-            if weight != 0:
-                term = weight * diff
-                components[i] = term if components[i] is None else components[i] + term
-    return jnp.stack(components, axis=-1)
+        def shifted(k):
+            return padded[tuple(slice(half + k[ax], half + k[ax] + shape[ax])
+                                for ax in range(3))]
+
+        # The kernels are odd (K_i(-k) = -K_i(k)), so each pair {k, -k} contributes
+        # K_i(k) (f(x + k) - f(x - k)): exactly 0 wherever the neighbourhood is constant.
+        # A convolution's rounding leaves noise there instead, which normalising turns
+        # into random unit normals with huge derivatives. Each difference is taken once.
+        components = [None, None, None]
+        for index in np.ndindex(*kernel.shape[1:]):
+            k = tuple(int(c) - half for c in index)
+            if k <= (0, 0, 0):  # one offset of each pair (lexicographically positive)
+                continue
+            diff = shifted(k) - shifted(tuple(-c for c in k))
+            for i in range(3):
+                weight = float(kernel[(i, *index)])
+                if weight != 0:
+                    term = weight * diff
+                    components[i] = term if components[i] is None else components[i] + term
+        return jnp.stack(components, axis=-1)
+
+    # A volume in tiny or huge units is taken to unit size by a power of two, and the
+    # gradient back: exact, so bit for bit the same gradient, but the weighted
+    # differences no longer fall to subnormals (flushed to 0 on a CPU; float32: values
+    # below about 1e-33) or overflow (float32: above 1.7e38). Volumes within
+    # 2^(maxexp / 2) of unit size are not scaled at all. The operator is linear, so its
+    # derivative is the unscaled one (scaling a cotangent by 2^-e, 2^e would overflow).
+    exponent = _exponent(lax.stop_gradient(jnp.max(jnp.abs(volume))))
+    scaled = _times_power_of_two(gradient(_times_power_of_two(volume, -exponent)), exponent)
+    return value_and_tangent(scaled, gradient(volume))
 
 
-def _divisor(x: Array) -> Array:
-    """``x`` where it is a finite number > 0, else 1 (a zero field stays 0, an infinite
-    component keeps an infinite norm instead of giving inf / inf)."""
-    return jnp.where((x > 0) & jnp.isfinite(x), x, jnp.ones_like(x))
+def _exponent(peak: Array) -> Array:
+    """The binary exponent ``e`` of ``peak`` (``peak = m 2^e``, ``m`` in [0.5, 1)) where
+    it lies beyond ``maxexp / 2`` either way (float32: ``peak`` above 1.8e19 or below
+    2.7e-20), else 0 (also for 0, inf or NaN)."""
+    _, e = jnp.frexp(peak)
+    bound = jnp.finfo(peak.dtype).maxexp // 2
+    extreme = ((e > bound) | (e < -bound)) & (peak > 0) & jnp.isfinite(peak)
+    return jnp.where(extreme, e, 0)
 
 
-def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = False
+def _times_power_of_two(x: Array, k: Array) -> Array:
+    """``x 2^k``, exactly (where the result is a normal number): two factors of about
+    ``2^(k/2)``, each a normal number of ``x``'s dtype, as ``2^k`` itself may not be."""
+    one = jnp.ones((), x.dtype)
+    return x * jnp.ldexp(one, k // 2) * jnp.ldexp(one, k - k // 2)
+
+
+def gradient_magnitude(gradient: Float[ArrayLike, "*batch k"], *, scaled: bool = False
                        ) -> Float[Array, "*batch"]:
     """Euclidean norm over the last axis, with a zero (not NaN) derivative at 0.
 
@@ -161,16 +198,62 @@ def gradient_magnitude(gradient: Float[Array, "*batch k"], *, scaled: bool = Fal
     [0, 1] (all zeros where the maximum is 0): the $m_G$ of importance-aware
     composition and the voxel saliency of Ruiz et al. (eq. 4) both use this. The
     last axis may hold several stacked gradients (e.g. one per colour channel).
+    Components of any finite size are handled (their squares are not formed).
+
+    Raises:
+        ValueError: ``gradient`` has no axis, or no element with ``scaled=True`` (no
+            maximum); NaN or inf in it (at run time when traced).
+        TypeError: ``scaled`` is not a bool, ``gradient`` not numeric.
     """
-    scaled = _checks.flag(scaled, "scaled", "volshade.gradient.gradient_magnitude")
+    where = "volshade.gradient.gradient_magnitude"
+    scaled = _checks.flag(scaled, "scaled", where)
+    gradient = _checks.as_float_array(gradient, "gradient", where)
+    if gradient.ndim == 0:
+        raise ValueError(f"{where}: `gradient` must have at least one axis (the vector "
+                         f"components are the last one), got a scalar.")
+    if scaled and gradient.size == 0:
+        raise ValueError(f"{where}: `gradient` is empty, shape {gradient.shape}: "
+                         f"`scaled=True` divides by the largest magnitude, and there is none.")
+    return _magnitude(_checks.finite(gradient, "gradient", where), scaled=scaled)
+
+
+def _magnitude(gradient: Array, *, scaled: bool) -> Array:
+    """:func:`gradient_magnitude` without its checks, for callers that checked the field."""
     if scaled:
         # the field divided by its largest component first, so that neither the
         # magnitudes nor the quotient's derivative (m / M^2) leave the float range; the
         # scaled magnitude does not depend on that factor, which is held constant
-        gradient = gradient / _divisor(lax.stop_gradient(jnp.max(jnp.abs(gradient))))
-    # |g| = p |g / p| with p the largest |component|: the squares of large components
-    # would overflow (float32: above 1e19) and those of small ones underflow. |g| is
-    # homogeneous, so holding p constant leaves its derivative exact
-    peak = _divisor(lax.stop_gradient(jnp.max(jnp.abs(gradient), axis=-1, keepdims=True)))
-    magnitude = peak[..., 0] * safe_norm(gradient / peak, axis=-1)
-    return safe_div(magnitude, jnp.max(magnitude)) if scaled else magnitude
+        gradient = scaled_down(gradient, _divisor(jnp.max(jnp.abs(gradient))))
+    result = _norm(gradient)
+    return safe_div(result, jnp.max(result)) if scaled else result
+
+
+def _over_peak(g: Array) -> tuple[Array, Array]:
+    """``(g / p, p)``, ``p`` the largest |component| over the last axis (1 for a zero
+    vector): the squares of ``g``'s large components would overflow (float32: above
+    1e19) and those of its small ones underflow."""
+    peak = _divisor(jnp.max(jnp.abs(g), axis=-1, keepdims=True))
+    return scaled_down(g, peak), peak
+
+
+@jax.custom_jvp
+def _norm(g: Array) -> Array:
+    """``|g|`` over the last axis, as ``p |g / p|`` (:func:`_over_peak`); its tangent is
+    ``u . dg`` with ``u = g / |g|`` (0 at the zero vector), as the rule of
+    ``p |g / p|`` would scale a cotangent by ``p`` first, which overflows where the
+    result does not."""
+    scaled, peak = _over_peak(g)
+    return peak[..., 0] * safe_norm(scaled, axis=-1)
+
+
+@_norm.defjvp
+def _norm_jvp(primals, tangents):
+    (g,), (dg,) = primals, tangents
+    scaled, _ = _over_peak(g)
+    return _norm(g), jnp.sum(safe_normalize(scaled) * dg, axis=-1)
+
+
+def _divisor(x: Array) -> Array:
+    """``x`` where it is a finite number > 0, else 1 (a zero field stays 0, an infinite
+    component keeps an infinite norm instead of giving inf / inf)."""
+    return jnp.where((x > 0) & jnp.isfinite(x), x, jnp.ones_like(x))

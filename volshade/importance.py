@@ -38,7 +38,7 @@ import numpy as np
 from . import _checks
 from ._numerics import quotient, safe_norm, safe_normalize, safe_pow, smoothstep
 from ._types import Array, ArrayLike, Float
-from .gradient import gradient_magnitude
+from .gradient import _magnitude
 
 _VECTORS = ("normal", "view", "light")
 _WEIGHTS = ("intensity", "extinction", "gradient", "silhouette", "unocclusion", "lighting")
@@ -469,7 +469,7 @@ def normalized_gradient_magnitude(gradient: Float[ArrayLike, "D H W 3"]) -> Floa
     gradient = _checks.as_float_array(gradient, "gradient", where)
     if gradient.ndim != 4 or gradient.shape[-1] != 3:
         raise ValueError(f"{where}: `gradient` must be (D, H, W, 3), got {gradient.shape}.")
-    return gradient_magnitude(_checks.finite(gradient, "gradient", where), scaled=True)
+    return _magnitude(_checks.finite(gradient, "gradient", where), scaled=True)
 
 
 # --------------------------------------------------------------------------- focus + context

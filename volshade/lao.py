@@ -86,7 +86,7 @@ from jax.scipy.signal import fftconvolve
 
 from . import _checks
 from . import directions as _directions
-from ._numerics import correct_opacity
+from ._numerics import correct_opacity, scaled_down
 from ._types import Array, ArrayLike, Float, Volume
 
 _WHERE = "volshade.lao"
@@ -599,14 +599,9 @@ def _concrete(x) -> float | None:
 
 def _divided(x, divisor, xp):
     """``x / divisor`` for a scale ``divisor > 0`` that the caller's result does not
-    depend on (held constant): on the host for NumPy arrays, and traced as a product,
-    twice, with the reciprocal of its square root. XLA on a CPU divides through the
-    reciprocal, which for a divisor above 8.5e37 is subnormal and flushed to zero (and
-    it turns ``x / r / r`` into ``x / r^2``)."""
-    if xp is np:
-        return x / divisor
-    inv_root = lax.stop_gradient(1 / jnp.sqrt(divisor))
-    return x * inv_root * inv_root
+    depend on (held constant): on the host for NumPy arrays, else
+    :func:`~volshade._numerics.scaled_down` (no subnormal reciprocal)."""
+    return x / divisor if xp is np else scaled_down(x, divisor)
 
 
 def _directions_array(directions, dtype, where: str = _WHERE) -> Array:

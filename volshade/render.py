@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import correct_opacity, log1m, quotient, safe_div, tiny
+from ._numerics import correct_opacity, log1m, safe_div, scaled_down, tiny
 from ._types import Array, Float
 from .camera import Camera, box_half_extent, intersect_box
 from .composition import COMPOSITORS, Compositor, Sample
@@ -236,9 +236,10 @@ def _shared_volumes(volume: Array, transfer: TransferFunction, spacing, *, gradi
         grad = regression_gradient(volume, spacing=spacing, size=3)
         # normals need only its direction and the importance its scaled magnitude: over
         # its largest component, a volume in tiny or huge units keeps its normals
-        # (|g|^2 would underflow or overflow, and safe_normalize give no normal)
+        # (|g|^2 would underflow or overflow, and safe_normalize give no normal). Both
+        # are scale-invariant, so the factor is held constant (scaled_down)
         peak = jnp.max(jnp.abs(grad))
-        grad = quotient(grad, jnp.where(peak > 0, peak, jnp.ones_like(peak)))
+        grad = scaled_down(grad, jnp.where(peak > 0, peak, jnp.ones_like(peak)))
     if magnitude:
         mag = normalized_gradient_magnitude(grad)
     if classified:

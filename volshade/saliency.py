@@ -47,7 +47,7 @@ from . import _checks
 from ._numerics import correct_opacity, safe_div
 from ._types import Array, ArrayLike, Float
 from .directions import _check_level, icosphere_points
-from .gradient import _WEIGHTS, _check_size, gradient_magnitude, regression_gradient
+from .gradient import _WEIGHTS, _check_size, _magnitude, regression_gradient
 from .obscurance import (
     _check_smoothing,
     _d_max_problems,
@@ -146,7 +146,7 @@ def _scaled_magnitude(gradients: list[Array]) -> Array:
     """Eq. 4's magnitude of the channels' gradients, scaled to [0, 1], as one compiled
     program (op by op, an eager call compiled about a dozen: first :func:`saliency` of
     a 32^3 volume 1.2 s, now 0.7-0.9 s)."""
-    return gradient_magnitude(jnp.concatenate(gradients, axis=-1), scaled=True)
+    return _magnitude(jnp.concatenate(gradients, axis=-1), scaled=True)
 
 
 _VISIBILITY = {
