@@ -22,6 +22,7 @@
 import os
 import pathlib
 import time
+from itertools import pairwise
 
 import jax.numpy as jnp
 import matplotlib
@@ -156,10 +157,24 @@ fig.tight_layout()
 fig.savefig(OUT / "corner_obscurance_render.png", dpi=90)
 plt.close(fig)
 
+# %% [markdown]
+# ## Checks
+# The tint next to the green wall, the dark corner, and the order of the rho functions:
+# for d in [0, d_max], 0 (all-or-nothing) <= 1 - exp(-d/d_max) <= d/d_max <=
+# sqrt(d/d_max), so with the same occluders their obscurances are ordered in every
+# voxel and channel, and where anything occludes (d > 0) the square root and the
+# exponential are strictly lighter than all-or-nothing.
+
 # %%
 sqrt, ao = results["sqrt"], results["ao"]
 near_green = sqrt[probes["next to green"]]
 assert near_green[1] > near_green[0] and near_green[1] > near_green[2], near_green
 assert sqrt[probes["corner"]].sum() < sqrt[probes["floor middle"]].sum()
-assert np.all(sqrt >= ao - 1e-6)
-print("checks passed: green bleeding, dark corner, sqrt >= ao")
+order = [results[rho] for rho in ("ao", "exponential", "linear", "sqrt")]
+for darker, lighter in pairwise(order):
+    assert np.all(lighter >= darker - 1e-6)
+occluded = ao.sum(-1) < 3 - 1e-6
+assert occluded.any()
+for rho in ("exponential", "sqrt"):
+    assert np.all(results[rho].sum(-1)[occluded] > ao.sum(-1)[occluded]), rho
+print("checks passed: green bleeding, dark corner, ao <= exponential <= linear <= sqrt")
