@@ -243,3 +243,16 @@ def test_gradient_magnitude_of_huge_components_and_its_checks():
     assert gradient_magnitude(jnp.zeros((0, 3))).shape == (0,)
     with pytest.raises(TypeError, match="`gradient`"):
         gradient_magnitude("x")
+
+
+def test_regression_gradient_keeps_values_far_below_a_huge_peak():
+    # found by a review of the rescaling: taking the whole volume to unit size put values
+    # 38 orders of magnitude below a 1e30 peak under float32's normal numbers (their
+    # gradient came out 0); it is now scaled only as far as the edge of the safe range
+    vol = np.fromfunction(lambda d, h, w: 1e-7 * (d / 12 + 0.1 * np.sin(h)), (12, 12, 12))
+    vol[0, 0, 0] = 1e30
+    got = np.asarray(regression_gradient(jnp.asarray(vol, jnp.float32)), np.float64)
+    ref = np.asarray(regression_gradient(jnp.asarray(vol)))
+    far = (slice(4, 12),) * 3
+    np.testing.assert_allclose(got[far], ref[far], rtol=0,
+                               atol=1e-5 * np.abs(ref[far]).max())

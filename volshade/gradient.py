@@ -131,11 +131,6 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
     on its own)."""
     kernel = regression_kernel(size, spacing=spacing, weighting=weighting)
     half = size // 2
-    # A volume in tiny or huge units is taken to unit size by a power of two, and the
-    # gradient back: exact, and so bit for bit the same gradient and derivative, but
-    # the weighted differences no longer underflow to subnormals (flushed to 0 on a
-    # CPU; float32: values below about 1e-33) or overflow (float32: above 1.7e38).
-    # Volumes within 2^(maxexp / 2) of unit size are not scaled at all.
     shape = volume.shape
 
     def gradient(volume):
@@ -162,25 +157,27 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
                     components[i] = term if components[i] is None else components[i] + term
         return jnp.stack(components, axis=-1)
 
-    # A volume in tiny or huge units is taken to unit size by a power of two, and the
-    # gradient back: exact, so bit for bit the same gradient, but the weighted
-    # differences no longer fall to subnormals (flushed to 0 on a CPU; float32: values
-    # below about 1e-33) or overflow (float32: above 1.7e38). Volumes within
-    # 2^(maxexp / 2) of unit size are not scaled at all. The operator is linear, so its
-    # derivative is the unscaled one (scaling a cotangent by 2^-e, 2^e would overflow).
-    exponent = _exponent(lax.stop_gradient(jnp.max(jnp.abs(volume))))
-    scaled = _times_power_of_two(gradient(_times_power_of_two(volume, -exponent)), exponent)
+    # A volume in tiny or huge units is brought to the edge of the safe range by a
+    # power of two, and the gradient back: exact wherever the scaled values stay normal
+    # numbers, while the weighted differences no longer fall to subnormals (flushed to
+    # 0 on a CPU; float32: a volume below about 1e-33) or overflow (float32: above
+    # 1.7e38). Scaled only as far as that edge, values far below the peak keep as many
+    # bits as they can; a volume inside the range is not scaled at all. The operator is
+    # linear, so its derivative is the unscaled one (scaling a cotangent by 2^-k, 2^k
+    # would overflow).
+    shift = _shift(lax.stop_gradient(jnp.max(jnp.abs(volume))))
+    scaled = _times_power_of_two(gradient(_times_power_of_two(volume, -shift)), shift)
     return value_and_tangent(scaled, gradient(volume))
 
 
-def _exponent(peak: Array) -> Array:
-    """The binary exponent ``e`` of ``peak`` (``peak = m 2^e``, ``m`` in [0.5, 1)) where
-    it lies beyond ``maxexp / 2`` either way (float32: ``peak`` above 1.8e19 or below
-    2.7e-20), else 0 (also for 0, inf or NaN)."""
+def _shift(peak: Array) -> Array:
+    """The power of two ``k`` that takes ``peak`` (``= m 2^e``, ``m`` in [0.5, 1)) to the
+    edge of ``|e| <= maxexp / 2`` (float32: 2.7e-20 to 1.8e19), 0 inside it and for 0,
+    inf or NaN."""
     _, e = jnp.frexp(peak)
     bound = jnp.finfo(peak.dtype).maxexp // 2
-    extreme = ((e > bound) | (e < -bound)) & (peak > 0) & jnp.isfinite(peak)
-    return jnp.where(extreme, e, 0)
+    ok = (peak > 0) & jnp.isfinite(peak)
+    return jnp.where(ok & (e > bound), e - bound, jnp.where(ok & (e < -bound), e + bound, 0))
 
 
 def _times_power_of_two(x: Array, k: Array) -> Array:
@@ -198,7 +195,8 @@ def gradient_magnitude(gradient: Float[ArrayLike, "*batch k"], *, scaled: bool =
     [0, 1] (all zeros where the maximum is 0): the $m_G$ of importance-aware
     composition and the voxel saliency of Ruiz et al. (eq. 4) both use this. The
     last axis may hold several stacked gradients (e.g. one per colour channel).
-    Components of any finite size are handled (their squares are not formed).
+    Components of any finite size are handled (their squares are not formed); subnormal
+    ones count as 0 (a CPU flushes them).
 
     Raises:
         ValueError: ``gradient`` has no axis, or no element with ``scaled=True`` (no
