@@ -24,10 +24,9 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
 from . import _checks
-from ._numerics import safe_div, safe_norm, safe_normalize, scaled_down, value_and_tangent
+from ._numerics import safe_div, safe_norm, safe_normalize, scaled_down
 from ._types import Array, ArrayLike, Float
 
 _WEIGHTS = {
@@ -157,34 +156,29 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
                     components[i] = term if components[i] is None else components[i] + term
         return jnp.stack(components, axis=-1)
 
-    # A volume in tiny or huge units is brought to the edge of the safe range by a
-    # power of two, and the gradient back: exact wherever the scaled values stay normal
-    # numbers, while the weighted differences no longer fall to subnormals (flushed to
-    # 0 on a CPU; float32: a volume below about 1e-33) or overflow (float32: above
-    # 1.7e38). Scaled only as far as that edge, values far below the peak keep as many
-    # bits as they can; a volume inside the range is not scaled at all. The operator is
-    # linear, so its derivative is the unscaled one (scaling a cotangent by 2^-k, 2^k
-    # would overflow).
-    shift = _shift(lax.stop_gradient(jnp.max(jnp.abs(volume))))
-    scaled = _times_power_of_two(gradient(_times_power_of_two(volume, -shift)), shift)
-    return value_and_tangent(scaled, gradient(volume))
+    # A volume in tiny or huge units (a peak beyond 2^(+-b), b = maxexp / 2; float32:
+    # above 1.8e19 or below 5.4e-20) is scaled by 2^(-+b/2), and the gradient back:
+    # exact wherever the scaled values stay normal numbers, while the weighted
+    # differences no longer fall to subnormals (flushed to 0 on a CPU; float32: a
+    # volume below about 1e-33) or overflow (float32: above 1.7e38). A volume inside
+    # that range is not scaled, and one outside it no further than needed, so that
+    # values far below the peak keep their bits.
+    # The operator is linear, so its derivative is the unscaled one (scaling a
+    # cotangent by 2^b and back would overflow); a rule, not value_and_tangent, so that
+    # a forward pass traces the operator once.
+    @jax.custom_jvp
+    def scaled_gradient(volume):
+        peak = jnp.max(jnp.abs(volume))
+        bound = jnp.finfo(volume.dtype).maxexp // 2
+        edge, factor = 2.0**bound, 2.0 ** (bound // 2)
+        huge, tiny = peak > edge, (peak > 0) & (peak < 1 / edge)
+        down = jnp.where(huge, 1 / factor, jnp.where(tiny, factor, 1)).astype(volume.dtype)
+        up = jnp.where(huge, factor, jnp.where(tiny, 1 / factor, 1)).astype(volume.dtype)
+        return gradient(volume * down) * up
 
-
-def _shift(peak: Array) -> Array:
-    """The power of two ``k`` that takes ``peak`` (``= m 2^e``, ``m`` in [0.5, 1)) to the
-    edge of ``|e| <= maxexp / 2`` (float32: 2.7e-20 to 1.8e19), 0 inside it and for 0,
-    inf or NaN."""
-    _, e = jnp.frexp(peak)
-    bound = jnp.finfo(peak.dtype).maxexp // 2
-    ok = (peak > 0) & jnp.isfinite(peak)
-    return jnp.where(ok & (e > bound), e - bound, jnp.where(ok & (e < -bound), e + bound, 0))
-
-
-def _times_power_of_two(x: Array, k: Array) -> Array:
-    """``x 2^k``, exactly (where the result is a normal number): two factors of about
-    ``2^(k/2)``, each a normal number of ``x``'s dtype, as ``2^k`` itself may not be."""
-    one = jnp.ones((), x.dtype)
-    return x * jnp.ldexp(one, k // 2) * jnp.ldexp(one, k - k // 2)
+    scaled_gradient.defjvp(lambda primals, tangents: (scaled_gradient(*primals),
+                                                      gradient(*tangents)))
+    return scaled_gradient(volume)
 
 
 def gradient_magnitude(gradient: Float[ArrayLike, "*batch k"], *, scaled: bool = False
