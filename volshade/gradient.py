@@ -161,11 +161,11 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
     # exact wherever the scaled values stay normal numbers, while the weighted
     # differences no longer fall to subnormals (flushed to 0 on a CPU; float32: a
     # volume below about 1e-33) or overflow (float32: above 1.7e38). A volume inside
-    # that range is not scaled, and one outside it no further than needed, so that
-    # values far below the peak keep their bits.
-    # The operator is linear, so its derivative is the unscaled one (scaling a
-    # cotangent by 2^b and back would overflow); a rule, not value_and_tangent, so that
-    # a forward pass traces the operator once.
+    # that range is not scaled, and one outside it is scaled by that fixed factor, not
+    # to unit size, so that values far below the peak keep their bits.
+    # The operator is linear, so its derivative is the unscaled one (a cotangent scaled
+    # by the factor and back could overflow); a rule, not value_and_tangent, so that a
+    # forward pass traces the operator once.
     @jax.custom_jvp
     def scaled_gradient(volume):
         peak = jnp.max(jnp.abs(volume))
