@@ -422,8 +422,10 @@ def test_camera_from_a_view_direction():
     assert abs(eye[2]) < 1e-12
     with pytest.raises(ValueError, match="spacing"):
         Camera.from_view(jnp.array([1.0, 1.0, 0.0]), spacing=(4.0, -1.0, 1.0))
-    # directions in huge or tiny numbers (|view|^2 overflows or underflows in float32)
-    for scale in (1e20, 1e-20):
+    # directions in huge or tiny numbers (|view|^2 overflows or underflows in float32;
+    # above 8.5e37 the reciprocal of the largest component is subnormal, flushed to 0 on
+    # a CPU: the view became the zero vector, azimuth and elevation 0)
+    for scale in (1e20, 1e-20, 6e37):
         view = jnp.asarray([3.0, 0.0, 4.0], jnp.float32) * scale
         eye = np.asarray(Camera.from_view(view, image_shape=(2, 2)).eye)
         np.testing.assert_allclose(eye, [1.5, 0.0, 2.0], atol=1e-6)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
-from ._numerics import safe_div, safe_norm, safe_normalize
+from ._numerics import safe_div, safe_norm, safe_normalize, scaled_down
 from ._types import Array, Float
 
 _PROJECTIONS = ("perspective", "orthographic")
@@ -53,8 +53,9 @@ def _view_angles(view: Array, spacing: Array) -> tuple[Array, Array]:
     """:meth:`Camera.from_view`'s azimuth and elevation (degrees) of a checked ``view``
     (one compiled program: an eager call compiled each operation, 1.3 s the first)."""
     # scaled to a largest component of 1 first: |view|^2 would overflow or underflow
-    # for directions given in very large or very small numbers
-    view = view / jnp.max(jnp.abs(view))
+    # for directions given in very large or very small numbers (scaled_down: a CPU
+    # divides through the reciprocal, which above 8.5e37 in float32 is flushed to 0)
+    view = scaled_down(view, jnp.max(jnp.abs(view)))
     v = safe_normalize(view * spacing)
     # arctan2 of the distance to the d axis rather than arcsin(v_d): a finite slope
     # at the poles, where the azimuth (undefined) is 0 with a zero gradient; "at the
