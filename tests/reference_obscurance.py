@@ -5,7 +5,9 @@ of the digital lines is shared (it *is* the specification): for direction ``l``
 with major axis ``a`` (first on ties) the line through voxel ``p`` visits
 ``p + t * e_a' + (o_b(i + t) - o_b(i)) e_b + (o_c(i + t) - o_c(i)) e_c`` where ``i``
 is p's coordinate along ``a`` counted in the direction's sense and
-``o(i) = floor(i * l_x / |l_a| + 1/2)``. Distance = ``t * |l| / |l_a|``.
+``o(i) = floor(i * l_x / |l_a| + 1/2)``, the ratio taken of the direction as given
+(normalised first, (3, 4, 0) would give 0.7499999999999999, not 3/4).
+Distance = ``t * |l| / |l_a|``.
 """
 
 import numpy as np
@@ -18,7 +20,6 @@ def occluder_distances(density: np.ndarray, directions: np.ndarray) -> np.ndarra
     grid = np.stack(np.meshgrid(*[np.arange(n) for n in density.shape], indexing="ij"), -1)
     out = np.full((len(directions), *density.shape), np.inf)
     for n_dir, vec in enumerate(np.asarray(directions, dtype=np.float64)):
-        vec = vec / np.linalg.norm(vec)
         a = int(np.argmax(np.abs(vec)))
         sign = 1 if vec[a] > 0 else -1
         s = vec / abs(vec[a])
@@ -52,7 +53,6 @@ def occluder_index(density: np.ndarray, directions: np.ndarray, n_dir: int) -> n
     """(D, H, W, 3) voxel index of the occluder along direction ``n_dir`` (-1 if none)."""
     density = np.asarray(density, dtype=np.float64)
     vec = np.asarray(directions, dtype=np.float64)[n_dir]
-    vec = vec / np.linalg.norm(vec)
     a = int(np.argmax(np.abs(vec)))
     sign = 1 if vec[a] > 0 else -1
     s = vec / abs(vec[a])

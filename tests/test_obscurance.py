@@ -153,6 +153,29 @@ def test_diagonal_distance_is_steps_times_step_length():
     assert float(d[0, 2, 2, 3]) == np.inf
 
 
+def test_direction_with_an_exact_ratio_follows_its_documented_line():
+    # found by a review: (3, 4, 0) was normalised before s = l / |l_a| was taken, so
+    # s_d = 0.7499999999999999 and o_d(2) = floor(1.9999999999999998) = 1, not 2: the
+    # line from (0, 0, 0) missed the occluder at (2, 2, 0), two steps of 1.25 away.
+    # ((0.6, 0.8, 0) is not among these: its ratio in binary is 0.7499999999999999.)
+    vol = jnp.zeros((3, 3, 1)).at[2, 2, 0].set(1.0)
+    for direction in ([3.0, 4.0, 0.0], [0.75, 1.0, 0.0], [3 * 2.0**100, 4 * 2.0**100, 0.0]):
+        dist = occluder_distances(vol, directions=np.array([direction]))
+        assert float(dist[0, 0, 0, 0]) == 2.5
+        ao = obscurance(vol, directions=np.array([direction]), d_max=2.5, rho="ao")
+        assert float(ao[0, 0, 0]) == 0.0
+
+
+def test_integer_directions_match_reference_exactly():
+    # every direction whose ratios are exact in binary (halves, quarters, eighths) hits
+    # the rounding boundaries floor(k + 1/2) of its digital lines
+    vol = random_volume((9, 17, 8), 21, levels=3)
+    dirs = np.array([v for v in np.ndindex(9, 9, 9) if any(v)], float) - 4.0
+    dirs = dirs[np.any(dirs != 0, axis=1) & np.isin(np.max(np.abs(dirs), 1), (2, 4))]
+    fast = np.asarray(occluder_distances(jnp.asarray(vol), directions=dirs))
+    assert_same_distances(fast, ref.occluder_distances(vol, dirs))
+
+
 def test_user_callable_rho_and_dtype():
     vol = jnp.asarray(random_volume((8, 8, 8), 8), jnp.float32)
     square = lambda d, dm: (d / dm) ** 2  # noqa: E731
@@ -392,6 +415,18 @@ def test_half_precision_density_sums_in_float32(dtype):
     want = obscurance(vol.astype(jnp.float32), directions=dirs, d_max=9.0)
     np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=0,
                                atol=float(jnp.finfo(dtype).eps) / 2)
+
+
+@pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])
+def test_half_precision_density_keeps_d_max(dtype):
+    # found by a review: d_max was cast to the density's dtype, so in bfloat16 19.06 became
+    # 19.0 and missed an occluder 11 sqrt(3) = 19.05 voxels away, and in float16 1e5 was
+    # refused as not finite
+    vol = jnp.zeros((12, 12, 12), dtype).at[11, 11, 11].set(1.0)
+    diagonal = np.array([[1.0, 1.0, 1.0]])
+    assert float(obscurance(vol, directions=diagonal, d_max=19.06, rho="ao")[0, 0, 0]) == 0.0
+    far = obscurance(vol, directions=diagonal, d_max=1e5, rho="linear")
+    np.testing.assert_allclose(float(far[0, 0, 0]), 11 * np.sqrt(3.0) / 1e5, rtol=1e-2)
 
 
 @pytest.mark.parametrize("rho", ["exponential", "sqrt"])

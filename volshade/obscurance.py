@@ -139,7 +139,11 @@ class _Group(NamedTuple):
 
 
 def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
-    """Concrete ``(L, 3)`` directions as float64 numpy (they set the traced program)."""
+    """Concrete ``(L, 3)`` directions as float64 numpy (they set the traced program),
+    each divided by its largest absolute component, which is then exactly 1: the
+    digital lines read $s = l / |l_a|$ off them without rounding (a unit vector
+    would not give it: (3, 4, 0) normalised and divided by 0.8 has
+    $s_d = 0.7499999999999999$, and $o_d(2) = 1$, not 2)."""
     if directions is None:
         raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, got None.")
     try:
@@ -172,14 +176,13 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
         )
     if not np.all(np.isfinite(dirs)):
         raise ValueError(f"{where}: `{name}` contains NaN or inf.")
-    # scaled by the largest component first: the norm of a direction given in huge or
-    # tiny numbers would overflow (a zero direction, marched nowhere) or underflow
+    # no norm is taken: that of a direction given in huge or tiny numbers would
+    # overflow (a zero direction, marched nowhere) or underflow
     scale = np.max(np.abs(dirs), axis=1, keepdims=True)
     if np.any(scale == 0):
         raise ValueError(f"{where}: `{name}` contains a zero vector; every direction must "
                          f"have a non-zero length.")
-    dirs = dirs / scale
-    return dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    return dirs / scale
 
 
 def _other_axes(axis: int) -> tuple[int, int]:
@@ -188,7 +191,8 @@ def _other_axes(axis: int) -> tuple[int, int]:
 
 
 def _line_groups(dirs: np.ndarray, shape: tuple[int, int, int]) -> list[_Group]:
-    """Group unit directions by (major axis, sign) and tabulate their digital lines."""
+    """Group directions (largest absolute component 1, as :func:`_direction_array`
+    gives them) by (major axis, sign) and tabulate their digital lines."""
     axes = np.argmax(np.abs(dirs), axis=1)
     groups = []
     for axis in range(3):
@@ -199,13 +203,13 @@ def _line_groups(dirs: np.ndarray, shape: tuple[int, int, int]) -> list[_Group]:
             sel = np.nonzero((axes == axis) & (np.sign(dirs[:, axis]) == sign))[0]
             if sel.size == 0:
                 continue
-            la = np.abs(dirs[sel, axis])
-            s_b, s_c = dirs[sel, b] / la, dirs[sel, c] / la
+            s_b, s_c = dirs[sel, b], dirs[sel, c]  # |l_a| = 1
             off_b = np.floor(i[None, :] * s_b[:, None] + 0.5).astype(np.int32)
             off_c = np.floor(i[None, :] * s_c[:, None] + 0.5).astype(np.int32)
+            step = np.sqrt(1.0 + s_b**2 + s_c**2)
             groups.append(_Group(
                 axis=axis, sign=sign, index=sel, off_b=off_b, off_c=off_c,
-                step=np.sqrt(1.0 + s_b**2 + s_c**2), cosine=la,
+                step=step, cosine=1.0 / step,
                 range_b=int(np.max(off_b.max(1) - off_b.min(1))),
                 range_c=int(np.max(off_c.max(1) - off_c.min(1))),
             ))
@@ -596,7 +600,9 @@ def obscurance(
     dtype = density.dtype
     rho_fn = _rho_fn(rho, where)
     dirs = _direction_array(directions, "directions", where)
-    d_max = _d_max(d_max, dtype, where)
+    # in the dtype of the distances (_obscurance): a half-precision d_max would be
+    # rounded (bfloat16: 19.06 -> 19.0) or overflow (float16: 1e5)
+    d_max = _d_max(d_max, _checks.at_least_float32(density).dtype, where)
     bleeding = colors is not None
     if bleeding:
         colors = _checks.as_float_array(colors, "colors", where).astype(dtype)

@@ -307,7 +307,7 @@ def _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area, whe
                             sequential=_sequential_products())
     if per_area:
         total = safe_div(total, projected_area(opacity, viewpoints))
-    return total, dirs
+    return total, dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
 
 
 def projected_area(
