@@ -36,6 +36,7 @@ from volshade.obscurance import (
     RHO_FUNCTIONS,
     _direction_array,
     _obscurance,
+    _Static,
     _static_dirs,
     obscurance,
 )
@@ -86,9 +87,30 @@ def _agreement() -> list[dict]:
     return rows
 
 
+# Problem sizes: the issues' (full), --quick, and a dry run that tests/test_benchmarks.py
+# makes on the CPU so that this script, run only where a GPU is lent, cannot rot unseen.
+SIZES = {
+    "full": {"lao": {"n": 512, "n_gather": 256}, "obscurance": 256, "ball": (256, 32),
+             "composite": (512, 512), "render": (256, 512), "repeats": 3},
+    "quick": {"lao": {"n": 256, "n_gather": 256}, "obscurance": 128, "ball": (128, 16),
+              "composite": (256, 256), "render": (128, 256), "repeats": 3},
+    "dry": {"lao": {"n": 12, "n_gather": 12, "n_dirs": 6, "samples": 4, "radius": 4.0},
+            "obscurance": 10, "ball": (16, 8), "composite": (4, 8), "render": (12, 8),
+            "repeats": 1},
+}
+
+
 def run(quick: bool) -> dict:
     if jax.default_backend() == "cpu":
         raise SystemExit("benchmarks.run gpu needs a GPU (jax.default_backend() is 'cpu').")
+    result = measure(SIZES["quick" if quick else "full"])
+    result["sizes"] = {"quick": quick}
+    return result
+
+
+def measure(sizes: dict) -> dict:
+    """Every case at ``sizes`` (an entry of :data:`SIZES`), on the default device."""
+    repeats = sizes["repeats"]
     rows = _agreement()
     ratios = {}
     t0 = time.perf_counter()
@@ -97,26 +119,27 @@ def run(quick: bool) -> dict:
     # so its peak ratios are the LAO's own only before the other large cases run
     from .lao import run_gpu, sparse_ball
 
-    lao_result = run_gpu(n=256 if quick else 512)
+    lao_result = run_gpu(**sizes["lao"], repeats=repeats)
     rows += lao_result["rows"]
     ratios.update({f"lao {k}": v for k, v in lao_result["ratios"].items()})
 
     # Obscurance: 256^3, 162 directions, d_max 64.
-    n = 128 if quick else 256
+    n = sizes["obscurance"]
     density = 0.5 * vs.data.phantom("shells", shape=n)
     dirs162 = icosphere(2)  # concrete: the directions set the sweep, close over them
     obs = jax.jit(lambda d, dm: obscurance(d, directions=dirs162, d_max=dm))
-    t = time_fn(obs, density, jnp.float32(64.0), repeats=3)
+    t = time_fn(obs, density, jnp.float32(64.0), repeats=repeats)
     rows.append({"case": f"obscurance {n}^3 162 dirs d_max 64", "median_s": t["median_s"],
                  "compile_s": t["first_call_s"] - t["median_s"]})
     # the search's column layout (volshade.obscurance._columns_last picks the last axis on a
     # GPU by reasoning, not measurement): both, same run, same result
     static = _static_dirs(_direction_array(dirs162, "directions", "gpu benchmark"))
+    sqrt = _Static(RHO_FUNCTIONS["sqrt"], RHO_FUNCTIONS["sqrt"])
     med, out = {}, {}
     for last in (False, True):
         fn = jax.jit(lambda d, dm, last=last: _obscurance(
-            d, dm, None, None, dirs=static, rho_fn=RHO_FUNCTIONS["sqrt"], columns_last=last))
-        med[last] = time_fn(fn, density, jnp.float32(64.0), repeats=3)["median_s"]
+            d, dm, None, None, None, dirs=static, rho_rest=sqrt, columns_last=last))
+        med[last] = time_fn(fn, density, jnp.float32(64.0), repeats=repeats)["median_s"]
         out[last] = fn(density, jnp.float32(64.0))
         rows.append({"case": f"obscurance {n}^3 162 dirs, columns along the "
                              f"{'last' if last else 'first'} axis", "median_s": med[last]})
@@ -125,18 +148,18 @@ def run(quick: bool) -> dict:
         jnp.max(jnp.abs(out[True] - out[False])))
 
     # LAO bricks on a sparse volume (a ball; 1/8 of the bricks within reach): bricked / plain.
-    n, brick = (128, 16) if quick else (256, 32)
+    n, brick = sizes["ball"]
     ball = sparse_ball(n)
     med = {}
     for b in (None, brick):
         fn = jax.jit(lambda a, b=b: lao(a, directions=16, radius=8.0, samples=16, brick_size=b))
-        med[b] = time_fn(fn, ball, repeats=3)["median_s"]
+        med[b] = time_fn(fn, ball, repeats=repeats)["median_s"]
         rows.append({"case": f"lao sparse ball {n}^3 L16 M16 R8, bricks {b}",
                      "median_s": med[b]})
     ratios["lao bricked speed-up on the sparse ball"] = med[None] / med[brick]
 
     # Composition: 512^2 rays x 512 samples.
-    side, samples = (256, 256) if quick else (512, 512)
+    side, samples = sizes["composite"]
     key = jax.random.split(jax.random.PRNGKey(0), 3)
     alphas = jax.random.uniform(key[0], (side * side, samples), jnp.float32, 0.0, 0.05)
     colors = jax.random.uniform(key[1], (side * side, samples, 3), jnp.float32) * alphas[..., None]
@@ -149,14 +172,14 @@ def run(quick: bool) -> dict:
             def fn(c, a, *i, u=unroll):
                 return composite(c, a, unroll=u, importance=i[0] if i else None)
 
-            t = time_fn(jax.jit(fn), *args, repeats=5)
+            t = time_fn(jax.jit(fn), *args, repeats=repeats + 2)
             med[(name, "fwd", unroll)] = t["median_s"]
             rows.append({"case": f"composite {name} {side}^2x{samples} unroll {unroll}",
                          "median_s": t["median_s"],
                          "Gsamples_per_s": side * side * samples / t["median_s"] / 1e9})
             grad = jax.jit(jax.grad(lambda *xs, fn=fn: jnp.sum(fn(*xs)),
                                     argnums=tuple(range(len(args)))))
-            t = time_fn(grad, *args, repeats=3)
+            t = time_fn(grad, *args, repeats=repeats)
             med[(name, "grad", unroll)] = t["median_s"]
             rows.append({"case": f"composite {name} fwd+grad unroll {unroll}",
                          "median_s": t["median_s"]})
@@ -167,17 +190,16 @@ def run(quick: bool) -> dict:
             med[("importance", "grad", u)] / med[("standard", "grad", u)])
 
     # Rendering: 512^2 over 256^3 (quick: 256^2 over 128^3).
-    n, px = (128, 256) if quick else (256, 512)
+    n, px = sizes["render"]
     vol = vs.data.phantom("shells", shape=n)
     cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(px, px))
     for shading in ("none", "phong"):
         scene = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading=shading,
                          step=1.0)
-        t = time_fn(eqx.filter_jit(vs.render), scene, cam, repeats=3)
+        t = time_fn(eqx.filter_jit(vs.render), scene, cam, repeats=repeats)
         work = px * px * n_samples(vol.shape, (1, 1, 1), 1.0)
         rows.append({"case": f"render {px}^2 over {n}^3, shading={shading}",
                      "median_s": t["median_s"], "Gsamples_per_s": work / t["median_s"] / 1e9})
     rows.append({"case": "(all cases after the agreement checks)",
                  "elapsed_s": time.perf_counter() - t0})
-    return {"title": "GPU goals and GPU/CPU agreement", "sizes": {"quick": quick},
-            "rows": rows, "ratios": ratios}
+    return {"title": "GPU goals and GPU/CPU agreement", "rows": rows, "ratios": ratios}

@@ -7,7 +7,7 @@ The cheap subset of ``benchmarks.gpu`` for when device time is short.
 
 import jax
 
-from .gpu import _agreement
+from .gpu import SIZES, _agreement
 from .lao import run_gpu
 
 
@@ -16,6 +16,6 @@ def run(quick: bool) -> dict:
         raise SystemExit("benchmarks.run gpu_recheck needs a GPU (jax.default_backend() is "
                          f"{jax.default_backend()!r}).")
     rows = _agreement()
-    lao = run_gpu(n=256 if quick else 512)
+    lao = run_gpu(**SIZES["quick" if quick else "full"]["lao"])
     return {"title": "GPU re-check: agreement and LAO", "sizes": {"quick": quick},
             "rows": rows + lao["rows"], "ratios": {f"lao {k}": v for k, v in lao["ratios"].items()}}

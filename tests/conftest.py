@@ -84,16 +84,22 @@ def pytest_addoption(parser):
     parser.addoption("--experiments", action="store_true",
                      help="also run every experiment script at its small size (about 2 min "
                           "of CPU; .ci/run does, in a second pytest run)")
+    parser.addoption("--dry-runs", action="store_true",
+                     help="also run the GPU benchmarks' scripts at tiny sizes on the CPU "
+                          "(about 1.5 min of CPU; .ci/run does, in a second pytest run)")
 
 
 def pytest_collection_modifyitems(config, items):
     # the experiments (real data, subprocesses at XLA's default optimisation: 120 s of
-    # CPU, a fifth of the suite's) run when asked for, as CI does
-    if not config.getoption("--experiments"):
-        skip = pytest.mark.skip(reason="an experiment script: run with --experiments "
-                                       "(.ci/run does)")
+    # CPU, a fifth of the suite's) and the benchmarks' dry runs run when asked for, as
+    # CI does
+    for option, marker, what in (("--experiments", "experiment", "an experiment script"),
+                                 ("--dry-runs", "dry_run", "a benchmark's dry run")):
+        if config.getoption(option):
+            continue
+        skip = pytest.mark.skip(reason=f"{what}: run with {option} (.ci/run does)")
         for item in items:
-            if item.get_closest_marker("experiment"):
+            if item.get_closest_marker(marker):
                 item.add_marker(skip)
     # the slow tests first (the sort is stable): pytest-xdist hands tests out in
     # collection order, and a long test started last keeps one core busy alone
