@@ -19,6 +19,7 @@ import numpy as np
 
 from volshade.directions import icosphere
 from volshade.obscurance import (
+    _direction_array,
     _from_frame,
     _line_ends,
     _line_groups,
@@ -34,8 +35,7 @@ from ._timing import time_fn
 
 def _march(density, dirs, d_max: int):
     """Naive obscurance (sqrt rho): for each direction, step ``d_max`` voxels ahead."""
-    dirs = np.asarray(dirs, dtype=np.float64)
-    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs = _direction_array(dirs, "directions", "the march")
     dtype = density.dtype
     total = jnp.zeros(density.shape, dtype)
     for g in _line_groups(dirs, density.shape):
