@@ -584,6 +584,54 @@ def test_pre_classification_jit_vmap_and_gradients():
     assert np.all(np.isfinite(g_vol)) and float(jnp.sum(jnp.abs(g_vol))) > 0
 
 
+_VOXEL_CENTRE_RENDER = """
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import numpy as np
+import volshade as vs
+
+rng = np.random.default_rng(9)
+vol = rng.uniform(0, 1, (3, 3, 7))
+vol[rng.uniform(size=vol.shape) < 0.3] = 0
+tf = vs.TransferFunction(jnp.asarray([0.0, 1.0]), jnp.asarray([[0.9, 0.2, 0.1], [0.1, 0.8, 0.3]]),
+                         jnp.asarray([1.0, 0.02]), step0=2.0)
+cam = vs.Camera.orbit(azimuth=90, elevation=0, distance=2.0, image_shape=(5, 4),
+                      projection="orthographic", width=0.85)
+worst = 0.0
+for classification, ambient in (("pre", None), ("post", rng.uniform(size=(3, 3, 7, 3)))):
+    scene = vs.Scene(volume=jnp.asarray(vol), transfer=tf, spacing=(2.0, 1.0, 1.0), step=1.0,
+                     classification=classification, shading="phong",
+                     ambient="none" if ambient is None else "volume",
+                     ambient_volume=None if ambient is None else jnp.asarray(ambient))
+    image = vs.render(scene, cam)
+    with jax.disable_jit():
+        eager = vs.render(scene, cam)
+    worst = max(worst, float(jnp.max(jnp.abs(image - eager))))
+print(worst)
+"""
+
+
+@pytest.mark.slow
+def test_samples_on_voxel_centres_read_their_own_voxel_with_the_default_xla_build():
+    # found by a review: the centre row of this image samples the plane d = 1 at index
+    # coordinates within an ulp of 1; XLA on a CPU recomputed each sample's point in every
+    # fusion reading it, LLVM contracted some copies into fused multiply-adds, and a
+    # multi-channel sample (pre-classified, an RGB ambient, the gradient of Phong) took its
+    # voxel from one copy and its weights from another: it read the slice d = 0 (0.28 of
+    # opacity off). The suite's own XLA flags hide this, so it runs with the user's.
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           "XLA_FLAGS": os.environ.get("VOLSHADE_TEST_USER_XLA_FLAGS", "")}
+    run = subprocess.run([sys.executable, "-c", _VOXEL_CENTRE_RENDER], env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert float(run.stdout.split()[-1]) < 1e-12
+
+
 def test_classification_option_is_checked_and_scenes_pass_it_on():
     vol, tf = _labels()
     cam = Camera.orbit(azimuth=30.0, image_shape=(6, 6))

@@ -297,12 +297,23 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
     # below `tiny` is 0 in this dtype anyway.
     max_depth = -jnp.log(tiny(volume))
 
-    def body(carry, k):
-        state, depth = carry
+    def position(k):
+        """Sample ``k``'s segment length and its point in voxel index coordinates."""
         seg = jnp.clip(length - k * dt, 0, dt)
         t_mid = t_near + k * dt + 0.5 * seg
-        index = (origins + t_mid[..., None] * directions + half_extent[None, None]) \
+        return seg, (origins + t_mid[..., None] * directions + half_extent[None, None]) \
             * to_index[None, None] - 0.5
+
+    def body(carry, k):
+        # The point is computed a step ahead and carried, so it is stored once and every
+        # sampling reads the same value. Computed here, XLA on a CPU recomputed it in
+        # each fusion that reads it (every gather of a multi-channel volume, and the
+        # weights), LLVM contracted some copies into fused multiply-adds and not others,
+        # and at a point within an ulp of a voxel centre one copy's floor chose the
+        # voxels and another's the weights: the sample read the neighbouring voxel.
+        state, depth, index = carry
+        seg = position(k)[0]
+        next_index = position(k + 1)[1]
         if shared.classified is None:
             value = _trilinear(volume, index, "nearest")
             color, alpha0 = transfer._rgba(value)
@@ -329,11 +340,12 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
             shaded = shaded * darkening[..., None]
             depth = depth + tau * seg * scale
         state = comp.step(state, Sample(alpha[..., None] * shaded, alpha, sample_imp))
-        return (state, depth), None
+        return (state, depth, next_index), None
 
-    carry = (comp.init(batch, dtype), jnp.zeros(batch, dtype))
+    first = position(jnp.zeros((), dtype))[1]
+    carry = (comp.init(batch, dtype), jnp.zeros(batch, dtype), first)
     steps = jnp.arange(n_samples(volume.shape, spacing, shared.step), dtype=dtype)
-    (state, _), _ = jax.lax.scan(jax.checkpoint(body), carry, steps)
+    (state, _, _), _ = jax.lax.scan(jax.checkpoint(body), carry, steps)
     bg_importance = shared.importance.background_importance(focus) if measured else 0
     return comp.finish(state, bg, jnp.broadcast_to(jnp.asarray(bg_importance, dtype), batch))
 
