@@ -500,6 +500,16 @@ def test_bad_inputs_raise_clear_errors():
         lao(alpha, directions=dirs, radius=True, offset=0.0)
     with pytest.raises(TypeError, match="`max_radius` must be a number"):
         lao(alpha, directions=dirs, radius=0.5, offset=0.0, max_radius=True)
+    # found by a review: known values were checked before their rounding to the march's
+    # float32, where 1.00000001 is the offset 1 (AO 1 with opacity correction, where
+    # float64 gives 0.25) and 3.5e38 is inf (AO NaN everywhere)
+    with pytest.raises(ValueError, match=r"`radius` \(1.00000001\) must be > `offset` "
+                                         r"\(1.0\) in float32"):
+        lao(alpha, directions=dirs, radius=1.00000001, offset=1.0, opacity_correction=True)
+    with pytest.raises(ValueError, match="`radius` must be finite .* in float32"):
+        lao(alpha, directions=dirs, radius=3.5e38)
+    assert float(lao(alpha.astype(jnp.float64), directions=dirs, radius=1.00000001,
+                     offset=1.0)[4, 4, 4]) == 1.0  # float64 tells them apart
 
 
 def test_single_sample_module_under_jit_checks_its_opacity():

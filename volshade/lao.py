@@ -597,6 +597,14 @@ def _concrete(x) -> float | None:
     return float(arr)
 
 
+def _in_dtype(value: float | None, dtype) -> float | None:
+    """A concrete ``value`` rounded to ``dtype`` (``inf`` where it overflows), or ``None``."""
+    if value is None:
+        return None
+    with np.errstate(over="ignore"):
+        return float(np.asarray(value).astype(jnp.dtype(dtype)))
+
+
 def _divided(x, divisor, xp):
     """``x / divisor`` for a scale ``divisor > 0`` that the caller's result does not
     depend on (held constant): on the host for NumPy arrays, else
@@ -700,16 +708,20 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     dirs = lax.stop_gradient(_directions_array(directions, dtype, where))
     n_dirs = dirs.shape[0]
 
-    r_value, a_value = _concrete(radius), _concrete(offset)
+    # known values are checked as the march will use them, in its dtype: a float32 march
+    # would take a radius of 1.00000001 as an offset of 1, and 3.5e38 as inf
+    r_value, a_value = (_in_dtype(_concrete(x), dtype) for x in (radius, offset))
+    working = f"in {jnp.dtype(dtype).name}, the dtype of the march"
     if a_value is not None and not (np.isfinite(a_value) and a_value >= 0):
-        raise ValueError(f"{where}: `offset` must be a finite number >= 0 (voxels), "
+        raise ValueError(f"{where}: `offset` must be a finite number >= 0 (voxels) {working}, "
                          f"got {offset!r}.")
     if r_value is not None:
         if not np.isfinite(r_value):
-            raise ValueError(f"{where}: `radius` must be finite (voxels), got {radius!r}.")
+            raise ValueError(f"{where}: `radius` must be finite (voxels) {working}, got "
+                             f"{radius!r}.")
         if a_value is not None and r_value <= a_value:
-            raise ValueError(f"{where}: `radius` ({r_value}) must be > `offset` ({a_value}); "
-                             f"increase the radius or lower the offset.")
+            raise ValueError(f"{where}: `radius` ({radius!r}) must be > `offset` ({offset!r}) "
+                             f"{working}; increase the radius or lower the offset.")
         if max_radius is not None and r_value > max_radius:
             raise ValueError(f"{where}: `radius` ({r_value}) exceeds `max_radius` "
                              f"({max_radius}); raise `max_radius`.")
