@@ -36,6 +36,10 @@ def lao_reference(alpha, directions, radius, offset, samples, *, weights=None,
             a = map_coordinates(alpha, [jnp.asarray(pts[..., k]) for k in range(3)],
                                 order=1, mode="constant", cval=0.0)
             if opacity_correction:
+                # map_coordinates' weighted sum of eight 1s comes out a few ulps either
+                # side of 1: above it (1 - a) ** step is NaN, below it 1e-2 short of 1
+                # for a step of 1/8 voxel; the library's lerps of equal values are exact
+                a = jnp.where(a >= 1 - 4 * np.finfo(np.float64).epsneg, 1.0, a)
                 a = 1 - (1 - a) ** step  # `a` is per voxel; `step` is in voxels
             opacities.append(a)
         intensity = jnp.zeros(alpha.shape, jnp.float64)

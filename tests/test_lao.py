@@ -70,6 +70,18 @@ def test_matches_gather_reference_float64():
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=0, atol=1e-12)
 
 
+def test_opaque_blocks_with_short_corrected_steps_match_gather_reference():
+    # a step of 1/8 voxel beside opaque voxels: the corrected opacity's slope is unbounded
+    # at 1, so an opaque sample must come out exactly 1 (the reference's interpolation did
+    # not, and gave NaN or 1e-2 errors until it snapped the last ulps, found by a review)
+    alpha = jnp.ones((6, 4, 7)).at[:, :, 5:].set(0.3).at[2:4, 1:3, 2].set(0.6)
+    dirs = vdirs.random_polar(4, key=jax.random.key(4009))
+    out = lao(alpha, directions=dirs, radius=3.0, offset=1.0, samples=16,
+              opacity_correction=True)
+    ref = lao_reference(alpha, dirs, 3.0, 1.0, 16, opacity_correction=True)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=0, atol=1e-12)
+
+
 def test_bounded_padding_equals_full_padding():
     alpha = _random_alpha((16, 16, 16), 11)
     kw = dict(directions=vdirs.fibonacci(5), offset=1.0, samples=6)
