@@ -283,6 +283,27 @@ def test_viewpoint_saliency_float32_agrees_with_float64(visibility):
                                rtol=1e-5)
 
 
+@pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])
+def test_half_precision_sums_in_float32(dtype):
+    # found by a review: viewpoint saliency, projected area and the regression gradient
+    # summed in the input's half precision (bfloat16: 1.7 % and 1.9 % off, float16
+    # areas whole numbers only up to 2048); now only the result is rounded
+    rng = np.random.default_rng(3)
+    sal = jnp.asarray(rng.uniform(0.5, 1.0, (16, 16, 16)), dtype)
+    alpha = jnp.asarray(rng.uniform(0.0, 0.05, (16, 16, 16)), dtype)
+    views = np.array([[1.0, 0, 0], [0.3, -0.5, 0.8]])
+    half_ulp = float(jnp.finfo(dtype).eps) / 2
+    for got, want in (
+            (viewpoint_saliency(sal, alpha, views),
+             viewpoint_saliency(sal.astype(jnp.float32), alpha.astype(jnp.float32), views)),
+            (projected_area(jnp.ones((48, 48, 48), dtype), views),
+             projected_area(jnp.ones((48, 48, 48), jnp.float32), views)),
+            (regression_gradient(sal), regression_gradient(sal.astype(jnp.float32)))):
+        assert got.dtype == dtype
+        np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=half_ulp,
+                                   atol=float(jnp.finfo(dtype).smallest_normal))
+
+
 def test_viewpoint_saliency_gradient_exact_at_opacity_one():
     # one salient voxel (opacity 1/2) behind one voxel of opacity a, viewed along +d
     # (|s| = 1, so the opacity correction is the identity): S is linear in a, with

@@ -178,7 +178,9 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
 
     scaled_gradient.defjvp(lambda primals, tangents: (scaled_gradient(*primals),
                                                       gradient(*tangents)))
-    return scaled_gradient(volume)
+    # half precision is summed in float32: 62 weighted differences of bfloat16 values
+    # were off by up to 1.9 % (float32 rounded back to bfloat16: 0.4 %)
+    return scaled_gradient(_checks.at_least_float32(volume)).astype(volume.dtype)
 
 
 def gradient_magnitude(gradient: Float[ArrayLike, "*batch k"], *, scaled: bool = False

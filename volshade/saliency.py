@@ -228,7 +228,10 @@ def _viewpoint_sums(saliency: Array, opacity: Array, *, dirs: tuple, visibility:
     def reduce(alpha, cols_saliency, cosine):
         return _visible_sum(alpha, cols_saliency, vis_fn, sequential)
 
-    return _per_view(opacity, np.asarray(dirs), reduce, saliency)
+    # half precision is summed in float32, as obscurance sums (bfloat16: 1.7 % off at 16^3)
+    work = _checks.at_least_float32(saliency).dtype
+    return _per_view(opacity.astype(work), np.asarray(dirs), reduce,
+                     saliency.astype(work)).astype(saliency.dtype)
 
 
 @functools.partial(jax.jit, static_argnames=("dirs",))
@@ -236,7 +239,9 @@ def _projected_area(mask: Array, *, dirs: tuple) -> Array:
     def reduce(alpha, _, cosine):
         return cosine * jnp.sum(jnp.any(alpha > 0, axis=0)).astype(alpha.dtype)
 
-    return _per_view(mask, np.asarray(dirs), reduce)
+    # counted in float32 at least: float16 holds whole numbers only up to 2048
+    work = _checks.at_least_float32(mask).dtype
+    return _per_view(mask.astype(work), np.asarray(dirs), reduce).astype(mask.dtype)
 
 
 def viewpoint_saliency(
