@@ -167,7 +167,7 @@ def test_direction_with_an_exact_ratio_follows_its_documented_line():
 
 
 def test_integer_directions_match_reference_exactly():
-    # every direction whose ratios are exact in binary (halves, quarters, eighths) hits
+    # every direction whose ratios are exact in binary (halves, quarters) hits
     # the rounding boundaries floor(k + 1/2) of its digital lines
     vol = random_volume((9, 17, 8), 21, levels=3)
     dirs = np.array([v for v in np.ndindex(9, 9, 9) if any(v)], float) - 4.0

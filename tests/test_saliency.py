@@ -33,7 +33,6 @@ def reference_viewpoint_saliency(sal, alpha, views, visibility="transmittance"):
     shape = np.array(alpha.shape)
     out = []
     for v in np.asarray(views, np.float64):
-        v = v / np.linalg.norm(v)
         a = int(np.argmax(np.abs(v)))
         sign = 1 if v[a] > 0 else -1
         s = v / abs(v[a])
@@ -286,8 +285,8 @@ def test_viewpoint_saliency_float32_agrees_with_float64(visibility):
 @pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])
 def test_half_precision_sums_in_float32(dtype):
     # found by a review: viewpoint saliency, projected area and the regression gradient
-    # summed in the input's half precision (bfloat16: 1.7 % and 1.9 % off, float16
-    # areas whole numbers only up to 2048); now only the result is rounded
+    # summed in the input's half precision (bfloat16: 1.7 % and 1.9 % off), and the
+    # saliency per area divided two rounded results; now only the result is rounded
     rng = np.random.default_rng(3)
     sal = jnp.asarray(rng.uniform(0.5, 1.0, (16, 16, 16)), dtype)
     alpha = jnp.asarray(rng.uniform(0.0, 0.05, (16, 16, 16)), dtype)
@@ -298,7 +297,10 @@ def test_half_precision_sums_in_float32(dtype):
              viewpoint_saliency(sal.astype(jnp.float32), alpha.astype(jnp.float32), views)),
             (projected_area(jnp.ones((48, 48, 48), dtype), views),
              projected_area(jnp.ones((48, 48, 48), jnp.float32), views)),
-            (regression_gradient(sal), regression_gradient(sal.astype(jnp.float32)))):
+            (regression_gradient(sal), regression_gradient(sal.astype(jnp.float32))),
+            (viewpoint_saliency(sal, alpha, views, per_area=True),
+             viewpoint_saliency(sal.astype(jnp.float32), alpha.astype(jnp.float32), views,
+                                per_area=True))):
         assert got.dtype == dtype
         np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=half_ulp,
                                    atol=float(jnp.finfo(dtype).smallest_normal))

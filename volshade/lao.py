@@ -714,16 +714,17 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     working = f"in {jnp.dtype(dtype).name}, the dtype of the march"
     if a_value is not None and not (np.isfinite(a_value) and a_value >= 0):
         raise ValueError(f"{where}: `offset` must be a finite number >= 0 (voxels) {working}, "
-                         f"got {offset!r}.")
+                         f"got {_concrete(offset)!r}.")
     if r_value is not None:
         if not np.isfinite(r_value):
             raise ValueError(f"{where}: `radius` must be finite (voxels) {working}, got "
-                             f"{radius!r}.")
+                             f"{_concrete(radius)!r}.")
         if a_value is not None and r_value <= a_value:
-            raise ValueError(f"{where}: `radius` ({radius!r}) must be > `offset` ({offset!r}) "
-                             f"{working}; increase the radius or lower the offset.")
+            raise ValueError(f"{where}: `radius` ({_concrete(radius)!r}) must be > `offset` "
+                             f"({_concrete(offset)!r}) {working}; increase the radius or "
+                             f"lower the offset.")
         if max_radius is not None and r_value > max_radius:
-            raise ValueError(f"{where}: `radius` ({r_value}) exceeds `max_radius` "
+            raise ValueError(f"{where}: `radius` ({_concrete(radius)!r}) exceeds `max_radius` "
                              f"({max_radius}); raise `max_radius`.")
     radius = _scalar(radius, "radius", dtype, where)
     offset = _scalar(offset, "offset", dtype, where)

@@ -472,7 +472,7 @@ def occluder_distances(
 
     Args:
         density: ``(D, H, W)`` intensities or opacities (any finite values).
-        directions: ``(L, 3)`` concrete directions ``(d, h, w)`` (normalised here).
+        directions: ``(L, 3)`` concrete directions ``(d, h, w)`` (of any length).
 
     Returns:
         ``(L, D, H, W)`` distances in voxels, ``inf`` where unoccluded, in the dtype
@@ -548,7 +548,7 @@ def obscurance(
             intensities (transfer-function independent) or opacities.
         directions: ``(L, 3)`` directions ``(d, h, w)``, e.g.
             ``volshade.directions.icosphere(0|1|2)`` (12, 42, 162); concrete (they set
-            the traced program), normalised here.
+            the traced program), of any length.
         d_max: maximum occluder distance in voxels, a scalar > 0; dynamic and
             differentiable (through $\rho$; the cut-off $d \le d_{max}$ is piecewise
             constant).

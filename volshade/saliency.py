@@ -228,10 +228,10 @@ def _viewpoint_sums(saliency: Array, opacity: Array, *, dirs: tuple, visibility:
     def reduce(alpha, cols_saliency, cosine):
         return _visible_sum(alpha, cols_saliency, vis_fn, sequential)
 
-    # half precision is summed in float32, as obscurance sums (bfloat16: 1.7 % off at 16^3)
+    # half precision is summed in float32, as obscurance sums (bfloat16: 1.7 % off at
+    # 16^3); the caller rounds the result
     work = _checks.at_least_float32(saliency).dtype
-    return _per_view(opacity.astype(work), np.asarray(dirs), reduce,
-                     saliency.astype(work)).astype(saliency.dtype)
+    return _per_view(opacity.astype(work), np.asarray(dirs), reduce, saliency.astype(work))
 
 
 @functools.partial(jax.jit, static_argnames=("dirs",))
@@ -239,9 +239,10 @@ def _projected_area(mask: Array, *, dirs: tuple) -> Array:
     def reduce(alpha, _, cosine):
         return cosine * jnp.sum(jnp.any(alpha > 0, axis=0)).astype(alpha.dtype)
 
-    # counted in float32 at least: float16 holds whole numbers only up to 2048
+    # in float32 at least, so that the cosine is not rounded to half precision before it
+    # scales the count; the caller rounds the result
     work = _checks.at_least_float32(mask).dtype
-    return _per_view(mask.astype(work), np.asarray(dirs), reduce).astype(mask.dtype)
+    return _per_view(mask.astype(work), np.asarray(dirs), reduce)
 
 
 def viewpoint_saliency(
@@ -311,8 +312,13 @@ def _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area, whe
     total = _viewpoint_sums(saliency, opacity, dirs=_static_dirs(dirs), visibility=visibility,
                             sequential=_sequential_products())
     if per_area:
-        total = safe_div(total, projected_area(opacity, viewpoints))
-    return total, dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        total = safe_div(total, _projected_area(_nonempty(opacity, 0), dirs=_static_dirs(dirs)))
+    return total.astype(saliency.dtype), dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+
+
+def _nonempty(opacity: Array, level: Array) -> Array:
+    """The mask of voxels above ``level``, as 0 and 1 in the dtype of ``opacity``."""
+    return jnp.where(opacity > level, jnp.ones_like(opacity), jnp.zeros_like(opacity))
 
 
 def projected_area(
@@ -358,9 +364,8 @@ def projected_area(
                                     "(0 counts every voxel with any opacity).")], where)
 
     # The mask of non-empty voxels is swept (opacity correction keeps 0 and 1 fixed).
-    mask = jnp.where(opacity > level, jnp.ones_like(opacity), jnp.zeros_like(opacity))
     dirs = _static_dirs(_direction_array(viewpoints, "viewpoints", where))
-    return _projected_area(mask, dirs=dirs)
+    return _projected_area(_nonempty(opacity, level), dirs=dirs).astype(opacity.dtype)
 
 
 def _select(saliency, opacity, viewpoints, per_area, visibility, pick, where):
