@@ -305,17 +305,19 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
             * to_index[None, None] - 0.5
 
     def body(carry, k):
-        # The point is computed a step ahead and carried, so it is stored once and every
-        # sampling reads the same value. Computed here, XLA on a CPU recomputed it in
-        # each fusion that reads it (every gather of a multi-channel volume, and the
-        # weights), LLVM contracted some copies into fused multiply-adds and not others,
-        # and at a point within an ulp of a voxel centre one copy's floor chose the
-        # voxels and another's the weights: the sample read the neighbouring voxel.
-        # The cost is in reverse mode, which keeps every step's carry: 3 more values
-        # per ray and sample on the compositing state's 4 (6 for importance) and depth.
-        state, depth, index = carry
+        state, depth = carry
         seg = position(k)[0]
-        next_index = position(k + 1)[1]
+        # The point is computed in a conditional (always taken): its result is stored
+        # once, and every sampling reads it. Computed in the body, XLA on a CPU
+        # recomputed it in each fusion that reads it (every gather of a multi-channel
+        # volume, and the weights), LLVM contracted some copies into fused multiply-adds
+        # and not others, and at a point within an ulp of a voxel centre one copy's floor
+        # chose the voxels and another's the weights: the sample read the neighbouring
+        # voxel. (An optimization_barrier does not stop that on a CPU, and a carried point
+        # would be stored for every step in reverse mode; the conditional is recomputed
+        # from k there, with the rest of the checkpointed body.)
+        index = jax.lax.cond(k >= 0, lambda: position(k)[1],
+                             lambda: jnp.zeros((*batch, 3), dtype))
         if shared.classified is None:
             value = _trilinear(volume, index, "nearest")
             color, alpha0 = transfer._rgba(value)
@@ -342,12 +344,11 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
             shaded = shaded * darkening[..., None]
             depth = depth + tau * seg * scale
         state = comp.step(state, Sample(alpha[..., None] * shaded, alpha, sample_imp))
-        return (state, depth, next_index), None
+        return (state, depth), None
 
-    first = position(jnp.zeros((), dtype))[1]
-    carry = (comp.init(batch, dtype), jnp.zeros(batch, dtype), first)
+    carry = (comp.init(batch, dtype), jnp.zeros(batch, dtype))
     steps = jnp.arange(n_samples(volume.shape, spacing, shared.step), dtype=dtype)
-    (state, _, _), _ = jax.lax.scan(jax.checkpoint(body), carry, steps)
+    (state, _), _ = jax.lax.scan(jax.checkpoint(body), carry, steps)
     bg_importance = shared.importance.background_importance(focus) if measured else 0
     return comp.finish(state, bg, jnp.broadcast_to(jnp.asarray(bg_importance, dtype), batch))
 
