@@ -710,21 +710,22 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
 
     # known values are checked as the march will use them, in its dtype: a float32 march
     # would take a radius of 1.00000001 as an offset of 1, and 3.5e38 as inf
-    r_value, a_value = (_in_dtype(_concrete(x), dtype) for x in (radius, offset))
+    r_given, a_given = _concrete(radius), _concrete(offset)
+    r_value, a_value = _in_dtype(r_given, dtype), _in_dtype(a_given, dtype)
     working = f"in {jnp.dtype(dtype).name}, the dtype of the march"
     if a_value is not None and not (np.isfinite(a_value) and a_value >= 0):
         raise ValueError(f"{where}: `offset` must be a finite number >= 0 (voxels) {working}, "
-                         f"got {_concrete(offset)!r}.")
+                         f"got {a_given!r}.")
     if r_value is not None:
         if not np.isfinite(r_value):
             raise ValueError(f"{where}: `radius` must be finite (voxels) {working}, got "
-                             f"{_concrete(radius)!r}.")
+                             f"{r_given!r}.")
         if a_value is not None and r_value <= a_value:
-            raise ValueError(f"{where}: `radius` ({_concrete(radius)!r}) must be > `offset` "
-                             f"({_concrete(offset)!r}) {working}; increase the radius or "
-                             f"lower the offset.")
+            raise ValueError(f"{where}: `radius` ({r_given!r}) must be > `offset` "
+                             f"({a_given!r}) {working}; increase the radius or lower the "
+                             f"offset.")
         if max_radius is not None and r_value > max_radius:
-            raise ValueError(f"{where}: `radius` ({_concrete(radius)!r}) exceeds `max_radius` "
+            raise ValueError(f"{where}: `radius` ({r_given!r}) exceeds `max_radius` "
                              f"({max_radius}); raise `max_radius`.")
     radius = _scalar(radius, "radius", dtype, where)
     offset = _scalar(offset, "offset", dtype, where)

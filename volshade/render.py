@@ -297,16 +297,15 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
     # below `tiny` is 0 in this dtype anyway.
     max_depth = -jnp.log(tiny(volume))
 
-    def position(k):
-        """Sample ``k``'s segment length and its point in voxel index coordinates."""
-        seg = jnp.clip(length - k * dt, 0, dt)
+    def point(k, seg):
+        """Sample ``k``'s point (in a segment of length ``seg``) in voxel index coordinates."""
         t_mid = t_near + k * dt + 0.5 * seg
-        return seg, (origins + t_mid[..., None] * directions + half_extent[None, None]) \
+        return (origins + t_mid[..., None] * directions + half_extent[None, None]) \
             * to_index[None, None] - 0.5
 
     def body(carry, k):
         state, depth = carry
-        seg = position(k)[0]
+        seg = jnp.clip(length - k * dt, 0, dt)
         # The point is computed in a conditional (always taken): its result is stored
         # once, and every sampling reads it. Computed in the body, XLA on a CPU
         # recomputed it in each fusion that reads it (every gather of a multi-channel
@@ -316,8 +315,7 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
         # voxel. (An optimization_barrier does not stop that on a CPU, and a carried point
         # would be stored for every step in reverse mode; the conditional is recomputed
         # from k there, with the rest of the checkpointed body.)
-        index = jax.lax.cond(k >= 0, lambda: position(k)[1],
-                             lambda: jnp.zeros((*batch, 3), dtype))
+        index = jax.lax.cond(k >= 0, lambda: point(k, seg), lambda: jnp.zeros((*batch, 3), dtype))
         if shared.classified is None:
             value = _trilinear(volume, index, "nearest")
             color, alpha0 = transfer._rgba(value)

@@ -309,10 +309,11 @@ def _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area, whe
     per_area = _checks.flag(per_area, "per_area", where)
     saliency, opacity = _check_pair(saliency, opacity, where)
     dirs = _direction_array(viewpoints, "viewpoints", where)
-    total = _viewpoint_sums(saliency, opacity, dirs=_static_dirs(dirs), visibility=visibility,
+    static = _static_dirs(dirs)
+    total = _viewpoint_sums(saliency, opacity, dirs=static, visibility=visibility,
                             sequential=_sequential_products())
     if per_area:
-        total = safe_div(total, _projected_area(_nonempty(opacity, 0), dirs=_static_dirs(dirs)))
+        total = safe_div(total, _projected_area(_nonempty(opacity, 0), dirs=static))
     return total.astype(saliency.dtype), dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
 
 
