@@ -17,6 +17,8 @@ from volshade.composition import (
     Sample,
     _importance_scan,
     _samples,
+    _scan,
+    _scan_in_place,
     composite,
     importance_finish,
     importance_init,
@@ -633,11 +635,85 @@ def test_errors():
                         Sample(jnp.zeros(3, jnp.float32), jnp.zeros((), jnp.float32)))
 
 
-def test_jaxpr_has_no_python_loop_over_samples():
-    c, a, imp = random_rays(2, 64)
-    jaxpr = jax.make_jaxpr(lambda c, a, i: composite(c, a, importance=i))(c, a, imp)
-    assert "scan" in str(jaxpr)
-    assert len(str(jaxpr)) < 20000
+@pytest.mark.parametrize("importance_aware", [False, True])
+def test_traced_bad_samples_are_refused_at_run_time(importance_aware):
+    # traced checks ride on the (..., 4) result, not on the samples; arrays of 4096 values
+    # or more are checked by float reductions (NaN reported before the range)
+    c, a, imp = random_rays(64, 80, seed=6)
+
+    def f(c, a, imp):
+        return composite(c, a, importance=imp if importance_aware else None)
+
+    def grad(c, a, imp):
+        return jax.grad(lambda *x: jnp.sum(f(*x)), (0, 1))(c, a, imp)
+
+    bad_alpha = a.copy()
+    bad_alpha[3, 5], bad_alpha[7, 9] = np.nan, 2.0
+    cases = [((c, bad_alpha, imp), "`alphas` contains NaN or inf"),
+             ((c, np.where(a > 0.9, 1.5, a), imp), r"`alphas` must lie in \[0, 1\]"),
+             ((np.where(c > 0.9, np.inf, c), a, imp), "`colors` contains NaN or inf"),
+             ((np.where(c > 0.9, -1e-30, c), a, imp), "`colors` must be >= 0")]
+    if importance_aware:
+        cases.append(((c, a, np.where(imp > 3, -np.inf, imp)), "`importance` contains NaN or inf"))
+    for args, message in cases:
+        for fn in (jax.jit(f), jax.jit(grad)):
+            with pytest.raises(Exception, match=message):  # (wrapped in a JaxRuntimeError)
+                jax.block_until_ready(fn(*args))
+    np.testing.assert_allclose(jax.jit(f)(c, a, imp), f(c, a, imp), rtol=1e-14)
+
+
+def test_standard_composite_in_forward_and_reverse_mode():
+    # values come from the in-place loop, derivatives from the scan of the same steps
+    c, a, _ = random_rays(3, 11, seed=7, alpha=(0.0, 1.0))
+    bg = jnp.asarray([0.2, 0.4, 0.6])
+
+    def f(c, a):
+        return composite(c, a, background=bg)
+
+    fwd, rev = jax.jacfwd(f, (0, 1))(c, a), jax.jacrev(f, (0, 1))(c, a)
+    for x, y in zip(fwd, rev, strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-13, atol=1e-15)
+    value, tangent = jax.jvp(f, (c, a), (np.ones_like(c), np.zeros_like(a)))
+    np.testing.assert_allclose(value, f(c, a), rtol=1e-14)
+    # colours enter linearly, weighted by the transmittance in front of each sample
+    t_front = np.cumprod(np.concatenate([np.ones((3, 1)), 1 - a[:, :-1]], 1), 1)
+    np.testing.assert_allclose(tangent[:, :3], np.repeat(t_front.sum(1)[:, None], 3, 1),
+                               rtol=1e-13)
+    np.testing.assert_array_equal(tangent[:, 3], 0)
+
+
+@pytest.mark.parametrize("n_samples", [0, 1, 7, 8, 9, 17])
+@pytest.mark.parametrize("batch", [(), (2,), (2, 3)])
+def test_values_read_in_place_equal_the_scan(n_samples, batch):
+    # a CPU computes values reading 8 samples per iteration where they lie, then the rest;
+    # reverse mode and other platforms scan the samples moved in front
+    rng = np.random.default_rng(n_samples)
+    a = rng.uniform(0, 1, (*batch, n_samples))
+    a = np.where(rng.uniform(size=a.shape) < 0.2, rng.integers(0, 2, a.shape), a)
+    c = rng.uniform(0, 1, (*batch, n_samples, 3)) * a[..., None]
+    imp = rng.normal(0, 3, (*batch, n_samples))
+    for step, init, i in ((standard_step, standard_init, None),
+                          (importance_step, importance_init, imp)):
+        state = init(batch, jnp.float64)
+        got = jax.jit(lambda s, c, a, i, step=step: _scan_in_place(step, s, c, a, i))(
+            state, c, a, i)
+        want = _scan(step, state, _samples(*map(jnp.asarray, (c, a)),
+                                           None if i is None else jnp.asarray(i)), 1)
+        for x, y in zip(got, want, strict=True):
+            np.testing.assert_allclose(x, y, rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.parametrize("importance_aware", [False, True])
+def test_jaxpr_has_no_python_loop_over_samples(importance_aware):
+    # the program does not grow with the number of samples (a loop, not one step each)
+    sizes = []
+    for n_samples in (64, 640):
+        c, a, imp = random_rays(2, n_samples)
+        jaxpr = str(jax.make_jaxpr(lambda c, a, i: composite(
+            c, a, importance=i if importance_aware else None))(c, a, imp))
+        assert "scan" in jaxpr
+        sizes.append(jaxpr.count("\n"))
+    assert sizes[0] == sizes[1]
 
 
 def test_state_is_a_pytree_usable_by_eqx():

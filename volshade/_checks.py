@@ -211,6 +211,15 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
     """``arr``, refused (:func:`refuse`) when it holds NaN or inf, or values outside
     [0, 1] (``unit_range``, :func:`in_unit_range`) or below 0 (``non_negative``);
     ``hint`` follows "must lie in [0, 1]" or "must be >= 0"."""
+    return refuse(arr, finite_problems(arr, name, unit_range=unit_range,
+                                       non_negative=non_negative, hint=hint), where)
+
+
+def finite_problems(arr: Array, name: str, *, unit_range: bool = False,
+                    non_negative: bool = False, hint: str = _OPACITY_HINT) -> list:
+    """The checks of :func:`finite`, as ``(bad, message)`` pairs for :func:`refuse`, to be
+    tied to another array than ``arr`` (a small result: :func:`refuse` passes what it
+    guards through a conditional, whose result XLA stores anew, a copy)."""
     flags = _value_flags(arr, finite=True, unit_range=unit_range, non_negative=non_negative)
     checks = [(flags.pop(0), f"`{name}` contains NaN or inf; clean the data (e.g. "
                              f"`jnp.nan_to_num`) first.")]
@@ -218,7 +227,7 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
         checks.append((flags.pop(0), f"`{name}` must lie in [0, 1] {hint}."))
     if non_negative:
         checks.append((flags.pop(0), f"`{name}` must be >= 0 {hint}."))
-    return refuse(arr, checks, where)
+    return checks
 
 
 def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT,
@@ -247,9 +256,23 @@ def _value_flags(arr: Any, *, finite: bool, unit_range: bool,
 
 
 def _flags_of(xp, x, finite: bool, unit_range: bool, non_negative: bool) -> list:
-    return ([~xp.all(xp.isfinite(x))] if finite else []) + \
-        ([xp.any((x < 0) | (x > 1))] if unit_range else []) + \
-        ([xp.any(x < 0)] if non_negative else [])
+    """The flags of :func:`_value_flags`, with float reductions where that is safe: XLA on
+    a CPU stores the elementwise predicates of ``all(isfinite(x))`` and ``any(x < 0)``
+    before reducing them (12.2 ms for 12.6 M floats, against 7.3 for ``sum(x * 0)``, NaN
+    where a value is not finite, and the smallest value). The smallest and largest values
+    are not used for NaN, which its fast min/max may drop; so they serve the range
+    checks only beside the finiteness check, which reports NaN first. Host (NumPy) arrays
+    are small and checked exactly as written."""
+    if np.size(x) == 0:
+        return [xp.asarray(False)] * (finite + unit_range + non_negative)
+    if xp is np or not finite:  # (in NumPy, inf * 0 warns)
+        return ([~xp.all(xp.isfinite(x))] if finite else []) + \
+            ([xp.any((x < 0) | (x > 1))] if unit_range else []) + \
+            ([xp.any(x < 0)] if non_negative else [])
+    lo = xp.min(x)
+    return [~xp.isfinite(xp.sum(x * 0))] + \
+        ([(lo < 0) | (xp.max(x) > 1)] if unit_range else []) + \
+        ([lo < 0] if non_negative else [])
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3))
