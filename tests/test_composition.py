@@ -685,7 +685,7 @@ def test_standard_composite_in_forward_and_reverse_mode():
 @pytest.mark.parametrize("n_samples", [0, 1, 7, 8, 9, 17])
 @pytest.mark.parametrize("batch", [(), (2,), (2, 3)])
 def test_values_read_in_place_equal_the_scan(n_samples, batch):
-    # a CPU computes values reading 8 samples per iteration where they lie, then the rest;
+    # a CPU computes values reading 8 or 4 samples per iteration where they lie, then the rest;
     # reverse mode and other platforms scan the samples moved in front
     rng = np.random.default_rng(n_samples)
     a = rng.uniform(0, 1, (*batch, n_samples))
@@ -695,12 +695,13 @@ def test_values_read_in_place_equal_the_scan(n_samples, batch):
     for step, init, i in ((standard_step, standard_init, None),
                           (importance_step, importance_init, imp)):
         state = init(batch, jnp.float64)
-        got = jax.jit(lambda s, c, a, i, step=step: _scan_in_place(step, s, c, a, i))(
-            state, c, a, i)
-        want = _scan(step, state, _samples(*map(jnp.asarray, (c, a)),
-                                           None if i is None else jnp.asarray(i)), 1)
-        for x, y in zip(got, want, strict=True):
-            np.testing.assert_allclose(x, y, rtol=1e-14, atol=1e-15)
+        for chunk in (4, 8):
+            got = jax.jit(lambda s, c, a, i, step=step, chunk=chunk: _scan_in_place(
+                step, chunk, s, c, a, i))(state, c, a, i)
+            want = _scan(step, state, _samples(*map(jnp.asarray, (c, a)),
+                                               None if i is None else jnp.asarray(i)), 1)
+            for x, y in zip(got, want, strict=True):
+                np.testing.assert_allclose(x, y, rtol=1e-14, atol=1e-15)
 
 
 @pytest.mark.parametrize("importance_aware", [False, True])
