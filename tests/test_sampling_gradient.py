@@ -38,6 +38,81 @@ def test_trilinear_matches_reference(mode):
     np.testing.assert_allclose(got, want, atol=1e-12)
 
 
+_VOXEL_CENTRE_POINTS = """
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.ndimage import map_coordinates
+import volshade as vs
+from volshade.sampling import trilinear
+
+rng = np.random.default_rng(9)
+vol = rng.uniform(0, 1, (3, 3, 7))
+vol[rng.uniform(size=vol.shape) < 0.3] = 0
+opacity = np.interp(vol, [0.0, 1.0], [1.0, 0.02])
+channels = jnp.asarray(np.stack([vol, 1 - vol, vol ** 2, opacity], -1))
+o, d = vs.Camera.orbit(azimuth=90, elevation=0, distance=2.0, image_shape=(5, 4),
+                       projection="orthographic", width=0.85).rays()
+half, to_index = jnp.asarray([3 / 7, 3 / 14, 0.5]), jnp.asarray([3.5, 7.0, 7.0])
+
+
+def raw(v, p):  # what trilinear does for channels, without its checks
+    return jnp.moveaxis(jax.vmap(lambda c: map_coordinates(
+        c, [p[..., i] for i in range(3)], order=1, mode="nearest"), in_axes=-1)(v), 0, -1)
+
+
+def march(sample):
+    def run(v, o, d):
+        moving, inside = d != 0, jnp.abs(o) <= half
+        safe = jnp.where(moving, d, 1.0)
+        t1 = jnp.where(moving, (-half - o) / safe, 0)
+        t2 = jnp.where(moving, (half - o) / safe, 0)
+        lo = jnp.where(moving, jnp.minimum(t1, t2), jnp.where(inside, -1e300, 1e300))
+        hi = jnp.where(moving, jnp.maximum(t1, t2), jnp.where(inside, 1e300, -1e300))
+        tn, tfar = jnp.maximum(jnp.max(lo, -1), 0), jnp.min(hi, -1)
+        hit = tfar > tn
+        length, tn = jnp.where(hit, tfar - tn, 0), jnp.where(hit, tn, 0)
+        dt = 1.0 / 7.0
+
+        def body(t, k):
+            seg = jnp.clip(length - k * dt, 0, dt)
+            p = (o + (tn + k * dt + 0.5 * seg)[..., None] * d + half) * to_index - 0.5
+            a0 = sample(v, p)[..., 3]
+            a = 1 - (1 - a0) ** (seg * 3.5)
+            return t * (1 - a), (p, a0)
+        return jax.lax.scan(body, jnp.ones(o.shape[:-1]), jnp.arange(11.0))
+    return jax.jit(run)
+
+
+for sample in (raw, lambda v, p: trilinear(v, p, mode="nearest")):
+    _, (points, got) = march(sample)(channels, o, d)
+    print(float(jnp.max(jnp.abs(got - trilinear(channels[..., 3], points, mode="nearest")))))
+"""
+
+
+@pytest.mark.slow
+def test_multichannel_trilinear_reads_one_copy_of_points_computed_in_the_same_jit():
+    # the renderer's case (see test_render), with the public trilinear: points computed in
+    # the caller's jit land within an ulp of the plane d = 1, and XLA on a CPU recomputes
+    # them in each fusion that reads them, contracting some copies into fused
+    # multiply-adds; a channel-last sample that took its voxel from one copy and its
+    # weights from another read d = 0 (the "raw" vmapped map_coordinates: 0.54 off with
+    # jaxlib 0.10). trilinear's finiteness check passes the points through a conditional,
+    # which stores them once. The suite's own XLA flags hide this: a subprocess.
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           "XLA_FLAGS": os.environ.get("VOLSHADE_TEST_USER_XLA_FLAGS", "")}
+    run = subprocess.run([sys.executable, "-c", _VOXEL_CENTRE_POINTS], env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    raw, public = (float(x) for x in run.stdout.split())
+    assert public < 1e-12, (raw, public)
+
+
 def test_trilinear_channels_jit_vmap_grad():
     rng = np.random.default_rng(1)
     vol = jnp.asarray(rng.random((4, 4, 4, 3)))

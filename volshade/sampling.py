@@ -62,6 +62,12 @@ def trilinear(
     if points.ndim < 1 or points.shape[-1] != 3:
         raise ValueError(f"{where}: `points` must have shape (..., 3), got {points.shape}.")
     volume = _checks.finite(volume, "volume", where)
+    # The check passes traced points through a conditional, which XLA stores once: every
+    # read of them then sees one value. Points computed in the caller's jit would otherwise
+    # be recomputed in each fusion reading them, some copies contracted into fused
+    # multiply-adds, and a channel of a point within an ulp of a voxel centre could take
+    # its voxel from one copy and its weights from another (the render march's lax.cond;
+    # tests/test_sampling_gradient.py).
     points = _checks.finite(points, "points", where)
     return _trilinear(volume, points, scipy_mode)
 
