@@ -637,8 +637,11 @@ def test_errors():
 
 @pytest.mark.parametrize("importance_aware", [False, True])
 def test_traced_bad_samples_are_refused_at_run_time(importance_aware):
-    # traced checks ride on the (..., 4) result, not on the samples; arrays of 4096 values
-    # or more are checked by float reductions (NaN reported before the range)
+    # traced checks ride on the initial transmittance, which values and derivatives both
+    # need (not on the samples, which they would copy); traced arrays are checked by float
+    # reductions, NaN reported before the range. The gradient w.r.t. the colours alone,
+    # and a JVP in them, do not read the colours: tied to the colours, as before, their
+    # checks were dead code there, and NaN colours gave finite derivatives silently.
     c, a, imp = random_rays(64, 80, seed=6)
 
     def f(c, a, imp):
@@ -646,6 +649,12 @@ def test_traced_bad_samples_are_refused_at_run_time(importance_aware):
 
     def grad(c, a, imp):
         return jax.grad(lambda *x: jnp.sum(f(*x)), (0, 1))(c, a, imp)
+
+    def grad_colors(c, a, imp):
+        return jax.grad(lambda c: jnp.sum(f(c, a, imp)))(c)
+
+    def jvp_colors(c, a, imp):
+        return jax.jvp(lambda c: f(c, a, imp), (c,), (jnp.ones_like(c),))[1]
 
     bad_alpha = a.copy()
     bad_alpha[3, 5], bad_alpha[7, 9] = np.nan, 2.0
@@ -656,7 +665,8 @@ def test_traced_bad_samples_are_refused_at_run_time(importance_aware):
     if importance_aware:
         cases.append(((c, a, np.where(imp > 3, -np.inf, imp)), "`importance` contains NaN or inf"))
     for args, message in cases:
-        for fn in (jax.jit(f), jax.jit(grad)):
+        for fn in (f, grad, grad_colors, *(() if importance_aware else (jvp_colors,))):
+            fn = jax.jit(fn)
             with pytest.raises(Exception, match=message):  # (wrapped in a JaxRuntimeError)
                 jax.block_until_ready(fn(*args))
     np.testing.assert_allclose(jax.jit(f)(c, a, imp), f(c, a, imp), rtol=1e-14)

@@ -37,9 +37,10 @@ rounding, hard cases included); forward mode (``jax.jvp``) is not available ther
 last axes, ``(..., S, 3)`` and ``(..., S)``, while a ``lax.scan`` over the samples
 needs them in front: moving them there is a transpose of every input, which on a CPU
 cost five times standard compositing itself. On a CPU the values are therefore
-computed by a loop that reads 8 samples of every ray per iteration where they lie
-(4 for importance-aware compositing)
-(``lax.platform_dependent``); reverse mode, and other platforms, use the scan.
+computed by a loop that reads 8 samples of every ray per iteration where they lie (4
+for importance-aware compositing; ``lax.platform_dependent``); derivatives (forward
+and reverse mode, and the values that come with them), and other platforms, use the
+scan.
 
 References:
     F. de Moura Pinto and C. M. D. S. Freitas, "Importance-aware composition for
@@ -52,6 +53,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 from . import _checks
 from ._numerics import tiny, value_and_tangent
@@ -555,10 +557,28 @@ def _standard_scan(state: StandardState, colors: Array, alphas: Array,
     return _values(standard_step, 8, state, colors, alphas, None, unroll)
 
 
-@_standard_scan.defjvp
 def _standard_scan_jvp(unroll, primals, tangents):
-    return jax.jvp(lambda s, c, a: _scan(standard_step, s, _samples(c, a), unroll), primals,
-                   tangents)
+    """The scan's JVP in the arrays with a tangent; those without one (symbolic zeros)
+    are held constant: instantiated zeros would make reverse mode carry, e.g., a zero
+    ``(S, ..., 3)`` colour tangent for a gradient w.r.t. the opacities alone."""
+    leaves, tree = jax.tree.flatten(primals)
+    dots = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
+    live = [not isinstance(t, SymbolicZero) for t in dots]
+
+    def scan(*live_leaves):
+        it = iter(live_leaves)
+        s, c, a = jax.tree.unflatten(tree, [next(it) if on else x
+                                            for x, on in zip(leaves, live, strict=True)])
+        return _scan(standard_step, s, _samples(c, a), unroll)
+
+    if not any(live):
+        out = scan()
+        return out, jax.tree.map(jnp.zeros_like, out)
+    return jax.jvp(scan, [x for x, on in zip(leaves, live, strict=True) if on],
+                   [t for t, on in zip(dots, live, strict=True) if on])
+
+
+_standard_scan.defjvp(_standard_scan_jvp, symbolic_zeros=True)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
@@ -690,10 +710,11 @@ def composite(
     r"""Composite sample arrays front to back into one RGBA value per ray.
 
     Standard compositing (eq. 1) when ``importance`` is None, importance-aware
-    compositing (eq. 8, :func:`importance_step`) otherwise, as a ``lax.scan``
-    over the samples with all rays carried at once. Importance-aware gradients
-    come from a hand-derived reverse-mode adjoint of that scan (see the module
-    docstring): ``jax.grad`` and ``jax.vjp`` work, forward mode does not.
+    compositing (eq. 8, :func:`importance_step`) otherwise, as a loop over the
+    samples with all rays carried at once (on a CPU reading the samples in place;
+    see the module docstring). Importance-aware gradients come from a hand-derived
+    reverse-mode adjoint of the ``lax.scan`` over the samples: ``jax.grad`` and
+    ``jax.vjp`` work, forward mode does not.
 
     Args:
         colors: ``(..., S, 3)`` opacity-weighted colours $C_s = \alpha_s c_s$ of
