@@ -1,4 +1,9 @@
-"""Test helpers: tolerances per dtype and float64 finite differences."""
+"""Test helpers: tolerances per dtype, float64 finite differences, and scripts run with the
+user's XLA flags."""
+
+import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -42,3 +47,15 @@ def one_medium_written_twice():
     per_half_mm = vs.TransferFunction.from_points(
         [(x, r, g, b, 1 - (1 - a) ** 0.5) for x, r, g, b, a in rows], step0=0.5)
     return per_mm, per_half_mm
+
+
+def run_with_user_xla_flags(script: str) -> list[str]:
+    """Run a Python ``script`` in a subprocess on the CPU with the user's XLA flags (the
+    suite's own fast-compile flags hide some of XLA's behaviour at its default
+    optimisation) and return the words it printed."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           "XLA_FLAGS": os.environ.get("VOLSHADE_TEST_USER_XLA_FLAGS", "")}
+    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    return run.stdout.split()

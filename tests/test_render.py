@@ -3,7 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import check_grad_fd
+from helpers import check_grad_fd, run_with_user_xla_flags
 
 import volshade as vs
 from volshade.camera import Camera, box_half_extent, intersect_box
@@ -620,16 +620,7 @@ def test_samples_on_voxel_centres_read_their_own_voxel_with_the_default_xla_buil
     # multi-channel sample (pre-classified, an RGB ambient, the gradient of Phong) took its
     # voxel from one copy and its weights from another: it read the slice d = 0 (0.28 of
     # opacity off). The suite's own XLA flags hide this, so it runs with the user's.
-    import os
-    import subprocess
-    import sys
-
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "XLA_FLAGS": os.environ.get("VOLSHADE_TEST_USER_XLA_FLAGS", "")}
-    run = subprocess.run([sys.executable, "-c", _VOXEL_CENTRE_RENDER], env=env,
-                         capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr[-2000:]
-    assert float(run.stdout.split()[-1]) < 1e-12
+    assert float(run_with_user_xla_flags(_VOXEL_CENTRE_RENDER)[-1]) < 1e-12
 
 
 def test_classification_option_is_checked_and_scenes_pass_it_on():

@@ -3,7 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import check_grad_fd
+from helpers import check_grad_fd, run_with_user_xla_flags
 from jax.test_util import check_grads
 from reference_gradient import regression_gradient_reference
 
@@ -100,16 +100,7 @@ def test_multichannel_trilinear_reads_one_copy_of_points_computed_in_the_same_ji
     # weights from another read d = 0 (the "raw" vmapped map_coordinates: 0.54 off with
     # jaxlib 0.10). trilinear's finiteness check passes the points through a conditional,
     # which stores them once. The suite's own XLA flags hide this: a subprocess.
-    import os
-    import subprocess
-    import sys
-
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "XLA_FLAGS": os.environ.get("VOLSHADE_TEST_USER_XLA_FLAGS", "")}
-    run = subprocess.run([sys.executable, "-c", _VOXEL_CENTRE_POINTS], env=env,
-                         capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr[-2000:]
-    raw, public = (float(x) for x in run.stdout.split())
+    raw, public = (float(x) for x in run_with_user_xla_flags(_VOXEL_CENTRE_POINTS))
     assert public < 1e-12, (raw, public)
 
 
