@@ -218,8 +218,8 @@ def finite(arr: Array, name: str, where: str, *, unit_range: bool = False,
 def finite_problems(arr: Array, name: str, *, unit_range: bool = False,
                     non_negative: bool = False, hint: str = _OPACITY_HINT) -> list:
     """The checks of :func:`finite`, as ``(bad, message)`` pairs for :func:`refuse`, to be
-    tied to another array than ``arr`` (a small result: :func:`refuse` passes what it
-    guards through a conditional, whose result XLA stores anew, a copy)."""
+    tied to a smaller array than ``arr`` (:func:`refuse` passes what it guards through a
+    conditional, whose result XLA stores anew: a copy)."""
     flags = _value_flags(arr, finite=True, unit_range=unit_range, non_negative=non_negative)
     checks = [(flags.pop(0), f"`{name}` contains NaN or inf; clean the data (e.g. "
                              f"`jnp.nan_to_num`) first.")]
