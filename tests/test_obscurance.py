@@ -427,6 +427,11 @@ def test_half_precision_density_keeps_d_max(dtype):
     assert float(obscurance(vol, directions=diagonal, d_max=19.06, rho="ao")[0, 0, 0]) == 0.0
     far = obscurance(vol, directions=diagonal, d_max=1e5, rho="linear")
     np.testing.assert_allclose(float(far[0, 0, 0]), 11 * np.sqrt(3.0) / 1e5, rtol=1e-2)
+    # and occluder_distances measures as obscurance does (it returned 19.125 in bfloat16,
+    # so that `d <= 19.06` said unoccluded where obscurance said occluded)
+    dist = occluder_distances(vol, directions=diagonal)
+    assert dist.dtype == jnp.float32
+    assert float(dist[0, 0, 0, 0]) == np.float32(11 * np.sqrt(np.float32(3.0)))
 
 
 @pytest.mark.parametrize("rho", ["exponential", "sqrt"])

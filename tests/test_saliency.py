@@ -401,3 +401,23 @@ def test_errors():
         saliency(jnp.zeros((4, 4, 4, 0)))
     with pytest.raises(ValueError, match="`level` must be a finite"):
         projected_area(v, VIEWS, level=jnp.nan)
+
+
+def test_half_precision_partner_does_not_round_the_other_volume():
+    # found by a review: viewpoint saliency cast the opacity to a bfloat16 saliency's
+    # dtype (0.999 became 1: a visible voxel was hidden, 0.99 gave a 37 % error), and
+    # modulate_opacity compared a float32 saliency of 0.1999 with the threshold 0.2 in a
+    # bfloat16 opacity's dtype (it rounded up and was kept)
+    sal = jnp.zeros((4, 1, 1), jnp.bfloat16).at[0].set(1.0)
+    alpha = jnp.zeros((4, 1, 1), jnp.float32).at[1:3].set(0.99)
+    view = np.array([[1.0, 0, 0]])
+    got = viewpoint_saliency(sal, alpha, view)
+    assert got.dtype == jnp.bfloat16
+    want = viewpoint_saliency(sal.astype(jnp.float32), alpha, view)
+    np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=2 ** -8)
+    np.testing.assert_allclose(want, [0.01 ** 2], rtol=1e-5)
+    opacity = jnp.full((1, 1, 2), 0.5, jnp.bfloat16)
+    out = modulate_opacity(opacity, jnp.array([[[0.1999, 0.2]]], jnp.float32))
+    assert out.dtype == jnp.bfloat16
+    assert float(out[0, 0, 0]) == 0.0
+    assert float(out[0, 0, 1]) == float(jnp.bfloat16(0.5 * 0.2))

@@ -80,7 +80,9 @@ def contextual_ao(
         alpha: ``(D, H, W)`` opacities in ``[0, 1]``, unclipped.
         clip: the clip shape (:mod:`volshade.clip`); the voxels inside it are removed.
         unclipped: ``(D, H, W)`` LAO of ``alpha`` without the clip, with the
-            parameters given here ($V_{PAO}$ of the paper).
+            parameters given here ($V_{PAO}$ of the paper). To differentiate, compute
+            it inside the differentiated function: voxels outside the marched bricks
+            take its gradient (zero for a precomputed array).
         directions, radius, offset, samples, weights, opacity_correction, max_radius:
             as for :func:`~volshade.lao.lao`.
         brick_size: edge (voxels) of the bricks that are marched or kept whole.

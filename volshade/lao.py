@@ -806,7 +806,9 @@ def lao(
             $\alpha' = 1 - (1-\alpha)^{\Delta s}$ ($\Delta s$ in voxels). False (the
             default) is the seeds' form, in which the same $M$ samples spread over a
             longer ray as $R$ grows, so AO can rise with the radius; to compare radii
-            physically, use True.
+            physically, use True. With True and a step under one voxel, a sample of
+            opacity exactly 1 passes a derivative of 0 (its one-sided slope is
+            infinite) to the opacity, ``radius`` and ``offset``.
         brick_size: if set, split the volume into bricks of this edge (voxels) and
             march only bricks with opacity within reach; the others get AO = 1
             without any work. Results and gradients equal the unbricked path (the

@@ -476,7 +476,7 @@ def occluder_distances(
 
     Returns:
         ``(L, D, H, W)`` distances in voxels, ``inf`` where unoccluded, in the dtype
-        of ``density``.
+        of ``density``, float32 at least (as :func:`obscurance` measures them).
 
     Raises:
         ValueError / TypeError: see :func:`obscurance`.
@@ -501,7 +501,9 @@ def _static_dirs(dirs: np.ndarray) -> tuple[tuple[float, float, float], ...]:
 @functools.partial(jax.jit, static_argnames=("dirs", "columns_last"))
 def _occluder_distances(density: Array, dirs: tuple, *, columns_last: bool) -> Array:
     dirs = np.asarray(dirs)
-    dtype = density.dtype
+    # distances in float32 at least, as :func:`obscurance` measures them: a half-precision
+    # distance (19.05 as 19.125 in bfloat16) would disagree with it at some d_max
+    dtype = _checks.at_least_float32(density).dtype
     out = jnp.zeros((dirs.shape[0], *density.shape), dtype)
     for g in _line_groups(dirs, density.shape):
         tiled = _tile(_to_frame(density, g.axis, g.sign))

@@ -156,12 +156,17 @@ _VISIBILITY = {
 
 
 def _check_pair(saliency, opacity, where):
+    """Both volumes checked and in the wider dtype, float32 at least (a bfloat16 saliency
+    mask must not round an opacity of 0.999 to 1, transmittance 0, before the product
+    along the view); also the dtype of ``saliency``, that of the result."""
     saliency = _checks.volume(saliency, "saliency", where)
-    opacity = _checks.volume(opacity, "opacity", where, unit_range=True).astype(saliency.dtype)
+    opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same (D, H, W) "
                          f"shape, got {saliency.shape} and {opacity.shape}.")
-    return saliency, opacity
+    dtype = _checks.at_least_float32(
+        jnp.zeros((), jnp.promote_types(saliency.dtype, opacity.dtype))).dtype
+    return saliency.astype(dtype), opacity.astype(dtype), saliency.dtype
 
 
 def _per_view(
@@ -307,14 +312,14 @@ def _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area, whe
     normalised ``(V, 3)`` viewpoints as NumPy."""
     _checks.option(visibility, _VISIBILITY, "visibility", where)
     per_area = _checks.flag(per_area, "per_area", where)
-    saliency, opacity = _check_pair(saliency, opacity, where)
+    saliency, opacity, out_dtype = _check_pair(saliency, opacity, where)
     dirs = _direction_array(viewpoints, "viewpoints", where)
     static = _static_dirs(dirs)
     total = _viewpoint_sums(saliency, opacity, dirs=static, visibility=visibility,
                             sequential=_sequential_products())
     if per_area:
         total = safe_div(total, _projected_area(_nonempty(opacity, 0), dirs=static))
-    return total.astype(saliency.dtype), dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    return total.astype(out_dtype), dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
 
 
 def _nonempty(opacity: Array, level: Array) -> Array:
@@ -469,11 +474,15 @@ def modulate_opacity(
     """
     where = "volshade.saliency.modulate_opacity"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
-    saliency = _saliency_volume(saliency, where).astype(opacity.dtype)
+    saliency = _saliency_volume(saliency, where)
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same shape, got "
                          f"{saliency.shape} and {opacity.shape}.")
-    return _opacity_factor(saliency, threshold, multiply, boost_top, where, opacity=opacity)
+    # compared with the threshold in the saliency's own precision (float32 at least): a
+    # bfloat16 opacity must not round a saliency of 0.1999 up to the threshold 0.2
+    saliency = _checks.at_least_float32(saliency)
+    return _opacity_factor(saliency, threshold, multiply, boost_top, where,
+                           opacity=opacity.astype(saliency.dtype)).astype(opacity.dtype)
 
 
 def opacity_factor(
