@@ -155,17 +155,23 @@ _VISIBILITY = {
 }
 
 
+def _work_dtype(saliency: Array, opacity: Array):
+    """The dtype a saliency and an opacity volume are combined in: the wider of theirs,
+    float32 at least. Neither rounds the other: a bfloat16 saliency mask would turn an
+    opacity of 0.999 into 1 (transmittance 0), a bfloat16 opacity a saliency of 0.1999
+    into the threshold 0.2; half precision summed over a view is 1.7 % off at 16^3."""
+    return jnp.result_type(saliency.dtype, opacity.dtype, jnp.float32)
+
+
 def _check_pair(saliency, opacity, where):
-    """Both volumes checked and in the wider dtype, float32 at least (a bfloat16 saliency
-    mask must not round an opacity of 0.999 to 1, transmittance 0, before the product
-    along the view); also the dtype of ``saliency``, that of the result."""
+    """Both volumes checked and in their :func:`_work_dtype`; also the dtype of
+    ``saliency``, that of the result."""
     saliency = _checks.volume(saliency, "saliency", where)
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same (D, H, W) "
                          f"shape, got {saliency.shape} and {opacity.shape}.")
-    dtype = _checks.at_least_float32(
-        jnp.zeros((), jnp.promote_types(saliency.dtype, opacity.dtype))).dtype
+    dtype = _work_dtype(saliency, opacity)
     return saliency.astype(dtype), opacity.astype(dtype), saliency.dtype
 
 
@@ -233,10 +239,8 @@ def _viewpoint_sums(saliency: Array, opacity: Array, *, dirs: tuple, visibility:
     def reduce(alpha, cols_saliency, cosine):
         return _visible_sum(alpha, cols_saliency, vis_fn, sequential)
 
-    # half precision is summed in float32, as obscurance sums (bfloat16: 1.7 % off at
-    # 16^3); the caller rounds the result
-    work = _checks.at_least_float32(saliency).dtype
-    return _per_view(opacity.astype(work), np.asarray(dirs), reduce, saliency.astype(work))
+    # the caller gives both in their _work_dtype and rounds the result
+    return _per_view(opacity, np.asarray(dirs), reduce, saliency)
 
 
 @functools.partial(jax.jit, static_argnames=("dirs",))
@@ -478,11 +482,9 @@ def modulate_opacity(
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same shape, got "
                          f"{saliency.shape} and {opacity.shape}.")
-    # compared with the threshold in the saliency's own precision (float32 at least): a
-    # bfloat16 opacity must not round a saliency of 0.1999 up to the threshold 0.2
-    saliency = _checks.at_least_float32(saliency)
-    return _opacity_factor(saliency, threshold, multiply, boost_top, where,
-                           opacity=opacity.astype(saliency.dtype)).astype(opacity.dtype)
+    dtype = _work_dtype(saliency, opacity)
+    return _opacity_factor(saliency.astype(dtype), threshold, multiply, boost_top, where,
+                           opacity=opacity.astype(dtype)).astype(opacity.dtype)
 
 
 def opacity_factor(
