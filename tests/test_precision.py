@@ -69,3 +69,28 @@ def test_half_precision_volumes_feed_every_effect(name):
     image = vs.render(eqx.tree_at(lambda s: s.volume, scene, vol), _cast(CAM, jnp.float32))
     assert image.dtype == jnp.float32
     np.testing.assert_array_equal(image, vs.render(scene, _cast(CAM, jnp.float32)))
+
+
+def test_half_precision_cameras_and_foci_place_pixels_in_float32():
+    # a bfloat16 pixel grid past 256 pixels misplaced rays by a pixel (0.85 in the
+    # image of a 300 x 300 render) and the focus centre by several
+    cam = _cast(vs.Camera.orbit(azimuth=33, elevation=17, image_shape=(300, 300)), jnp.bfloat16)
+    origins, directions = cam.rays()
+    want_origins, want_directions = _cast(cam, jnp.float32).rays()
+    assert directions.dtype == jnp.float32
+    np.testing.assert_array_equal(directions, want_directions)
+    np.testing.assert_array_equal(origins, want_origins)
+
+    focus = _cast(vs.Focus(center=(0.37, 0.61), radius=0.2), jnp.bfloat16)
+    weights = focus.weights((300, 300))
+    assert weights.dtype == jnp.bfloat16
+    # only the final rounding to bfloat16 (8 significant bits) differs
+    np.testing.assert_allclose(weights.astype(jnp.float32),
+                               _cast(focus, jnp.float32).weights((300, 300)), atol=2 ** -8)
+
+
+def test_half_precision_features_weigh_importance_in_float32():
+    importance, scale = vs.sample_importance(vs.Importance(intensity=7e4),
+                                             intensity=jnp.ones(3, jnp.float16))
+    assert importance.dtype == scale.dtype == jnp.float32
+    np.testing.assert_array_equal(importance, 7e4)  # float16 overflowed to inf

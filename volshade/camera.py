@@ -279,9 +279,11 @@ class Camera(eqx.Module):
         return forward, right, up
 
     def rays(self) -> tuple[Float[Array, "H W 3"], Float[Array, "H W 3"]]:
-        """Ray origins and unit directions, each ``(H, W, 3)``, row 0 at the top."""
+        """Ray origins and unit directions, each ``(H, W, 3)``, row 0 at the top; in
+        the camera's dtype, float32 at least (a half-precision pixel grid and basis
+        would misplace the rays by a whole pixel)."""
         h, w = self.image_shape
-        camera = self._valid()
+        camera = jax.tree.map(_checks.at_least_float32, self._valid())
         forward, right, up = camera.basis()
         dtype = forward.dtype
         y = 1 - 2 * (jnp.arange(h, dtype=dtype) + 0.5) / h

@@ -364,8 +364,9 @@ def sample_importance(
             :func:`focus_weights`).
 
     Returns:
-        ``(importance, color_scale)``, both ``(...)``: $I_s$ (any real) and the
-        factor in (0, 1] to multiply the sample colour by.
+        ``(importance, color_scale)``, both ``(...)`` in the features' dtype, float32
+        at least: $I_s$ (any real) and the factor in (0, 1] to multiply the sample
+        colour by.
 
     Raises:
         ValueError: no features given, shapes that do not broadcast, vectors whose last
@@ -414,7 +415,9 @@ def _sample_importance(params, scalars, vectors, global_weight):
     except ValueError as err:
         raise ValueError(f"{where}: feature shapes {shapes} do not broadcast to one batch shape.") \
             from err
-    dtype = jnp.result_type(*scalars.values(), *vectors.values())
+    # float32 at least: a float16 weighted sum overflows (intensity 7e4 is inf)
+    dtype = _checks.at_least_float32(jnp.zeros((), jnp.result_type(*scalars.values(),
+                                                                   *vectors.values()))).dtype
     scalars = {k: jnp.broadcast_to(v.astype(dtype), batch) for k, v in scalars.items()}
     vectors = {k: jnp.broadcast_to(v.astype(dtype), (*batch, 3)) for k, v in vectors.items()}
     p = {k: jnp.asarray(v).astype(dtype) for k, v in _leaves(params).items()}
@@ -582,12 +585,16 @@ def focus_weights(
 def _focus_weights(fn, shape, dtype, center, radius, inside, outside) -> Array:
     """:func:`focus_weights` after its checks: one compiled program per kind, shape and
     dtype (an eager call ran an XLA program per operation: 1.4 s for the first, now 0.09 s)."""
+    # pixel geometry in float32 at least (bfloat16 pixel indices are not exact past
+    # 256), the weights cast to ``dtype`` at the end
+    work = jnp.promote_types(dtype, jnp.float32)
     rows, cols = jnp.arange(shape[0]), jnp.arange(shape[1])
-    dr = rows.astype(dtype)[:, None] - center[0].astype(dtype)
-    dc = cols.astype(dtype)[None, :] - center[1].astype(dtype)
+    dr = rows.astype(work)[:, None] - center[0].astype(work)
+    dc = cols.astype(work)[None, :] - center[1].astype(work)
     dist = safe_norm(jnp.stack(jnp.broadcast_arrays(dr, dc), axis=-1))
-    f = fn(dist, radius, rows, cols)
-    return outside.astype(dtype) + (inside.astype(dtype) - outside.astype(dtype)) * f
+    f = fn(dist, radius.astype(work), rows, cols)
+    inside, outside = inside.astype(work), outside.astype(work)
+    return (outside + (inside - outside) * f).astype(dtype)
 
 
 class Focus(eqx.Module):
@@ -655,7 +662,11 @@ class Focus(eqx.Module):
                                  f"each Focus inside jax.vmap, e.g. jax.vmap(lambda r: "
                                  f"Focus(radius=r).weights(shape))(radii).")
         h, w = image_shape
+        dtype = jnp.result_type(self.center, self.radius, self.inside, self.outside)
         center = _checks.refuse(self.center, [self._center_problem()], "volshade.Focus")
-        center = center * jnp.asarray([h, w], self.center.dtype) - 0.5
-        return focus_weights(image_shape, center=center, radius=self.radius * h, kind=self.kind,
-                             inside=self.inside, outside=self.outside)
+        # in pixels in float32 at least: bfloat16 keeps 8 significant bits, so a
+        # centre past 128 px would be rounded to half a pixel or more
+        center, radius = map(_checks.at_least_float32, (center, self.radius))
+        center = center * jnp.asarray([h, w], center.dtype) - 0.5
+        return focus_weights(image_shape, center=center, radius=radius * h, kind=self.kind,
+                             inside=self.inside, outside=self.outside, dtype=dtype)
