@@ -228,3 +228,18 @@ def test_signed_distance_refuses_bad_leaves_and_keeps_nan_points_nan(name):
     for use in (lambda c: vs.clip_mask((5, 5, 5), c), lambda c: c.signed_distance(jnp.zeros(3))):
         with pytest.raises(ValueError, match=r"`center` must be 3 numbers .* got shape \(1,\)"):
             use(short)
+
+
+@pytest.mark.parametrize("make", [
+    lambda dt, r: vs.SphereClip(center=jnp.zeros(3, dt), radius=jnp.asarray(2.0, dt),
+                                rotation=r),
+    lambda dt, r: vs.BoxClip(center=jnp.zeros(3, dt), half_size=jnp.asarray(2.0, dt),
+                             rotation=r),
+    lambda dt, r: vs.TorusClip(center=jnp.zeros(3, dt), major=jnp.asarray(3.0, dt),
+                               minor=jnp.asarray(1.0, dt), rotation=r),
+    lambda dt, r: vs.HalfSpaceClip(center=jnp.zeros(3, dt), rotation=r),
+])
+def test_every_clip_shape_keeps_its_leaves_dtype(make):
+    # a float32 clip stays float32 under x64 (the box's half-sizes were cast to float64)
+    clip = make(jnp.float32, jnp.eye(3, dtype=jnp.float32))
+    assert {leaf.dtype for leaf in jax.tree.leaves(clip)} == {jnp.dtype(jnp.float32)}

@@ -2,7 +2,10 @@
 
 The public API. Submodules hold the details (``volshade.data``, ``volshade.transfer``,
 ``volshade.directions``, ``volshade.gradient``, ``volshade.sampling``); the kernels
-and parameter modules are re-exported here.
+and parameter modules are re-exported here. Where a function has its module's name
+(``volshade.lao``, ``volshade.render``, ``volshade.fit``, ``volshade.obscurance``, ...)
+the attribute is the function; import the module's other names from it, e.g.
+``from volshade.render import march``.
 """
 
 from . import data as data

@@ -190,7 +190,7 @@ class BoxClip(Clip):
             raise ValueError(f"{where}: `half_size` must be one number or three (d, h, w), "
                              f"in voxels (a batch of boxes, for vmap: shape (..., 3)), got "
                              f"shape {half_size.shape}.")
-        self.half_size = _positive(jnp.broadcast_to(half_size.astype(float),
+        self.half_size = _positive(jnp.broadcast_to(half_size,
                                                     half_size.shape or (3,)),
                                    "half_size", where)
 

@@ -182,7 +182,8 @@ class Scene(eqx.Module):
             ``modulation="saliency"``.
         shading: ``"none"`` (emission-absorption), ``"phong"`` (Blinn--Phong with
             the ambient term) or ``"obscurance"`` (eq. 5 of Ruiz et al.: all local
-            lighting scaled by the ambient volume; two-sided, like ``"phong"``).
+            lighting scaled by the ambient volume; two-sided, like ``"phong"``; with
+            no ambient term, samples without a gradient are black).
         phong: Blinn--Phong coefficients, for ``shading="phong"`` or
             ``"obscurance"`` (which reads its diffuse and specular terms).
         composition: ``"standard"`` or ``"importance"`` (importance-aware, with

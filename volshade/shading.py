@@ -11,7 +11,8 @@ The diffuse and specular terms are two-sided (``|N.L|``), as usual in volume
 rendering where gradients point either way across a boundary. Where the
 gradient vanishes the normal is the zero vector and only the ambient term
 remains; the normal is computed with :func:`~volshade._numerics.safe_normalize`
-so its gradient stays finite there.
+so its gradient stays finite there. :func:`obscurance_lit` (eq. 5 of Ruiz et
+al.) has no ambient term: there a sample without a gradient is black.
 
 References:
     Blinn: Models of light reflection for computer synthesized pictures. SIGGRAPH 1977.
@@ -119,7 +120,10 @@ def unlit(color, gradient, light, view, ambient, params):
 def obscurance_lit(color, gradient, light, view, ambient, params):
     r"""Eq. 5 of Ruiz et al. 2008, two-sided like :func:`blinn_phong`:
     $c\,(k_d |N\cdot L| + k_s |N\cdot H|^n)\, O(x)$, the whole local lighting scaled by
-    the (grey or RGB) obscurance passed as ``ambient``."""
+    the (grey or RGB) obscurance passed as ``ambient``. The equation has no ambient
+    term, so a sample whose gradient vanishes (the inside of a homogeneous region,
+    seen through a clip) is black: use ``"phong"`` shading with the obscurance as its
+    ambient term for those."""
     obs = jnp.broadcast_to(ambient, color.shape)
     return color * _obscurance_shading(-gradient, jnp.asarray(light, color.dtype),
                                        jnp.asarray(view, color.dtype), obs, params.diffuse,
