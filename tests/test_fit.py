@@ -20,6 +20,7 @@ from volshade.fit import (
     _from_bounded,
     _parameter,
     _parameters,
+    _solve,
     _to_bounded,
 )
 
@@ -193,11 +194,41 @@ def test_a_minus_inf_start_is_refused_and_no_step_reports_the_initial_loss(monke
     with pytest.raises(ValueError, match="initial value of 'importance.background' .* must be "
                                          "finite to be fitted"):
         vs.fit(scene, cam, target, params=["importance.background"])
-    # past that check, the solver takes no step: the loss is the start's, not zeros
-    monkeypatch.setattr(sys.modules["volshade.fit"], "_from_bounded", lambda x, bounds, path: x)
+    # past that check (and the check that the render depends on it: at -inf it does
+    # not), the solver takes no step: the loss is the start's, not zeros
+    module = sys.modules["volshade.fit"]
+    monkeypatch.setattr(module, "_from_bounded", lambda x, bounds, path: x)
+    monkeypatch.setattr(module, "_refuse_without_effect",
+                        lambda problem, u0, paths: (u0, problem.loss(u0)))
     result = vs.fit(scene, cam, target, params=["importance.background"], throw=False)
     assert int(result.steps) == 0 and result.result != optx.RESULTS.successful
     assert float(result.loss) == float(result.initial_loss) > 0
+
+
+@pytest.mark.slow
+def test_parameters_switched_off_by_a_zero_weight_are_refused_until_it_is_turned_on():
+    # found by a review: with the default importance weights (silhouette, lighting and
+    # unocclusion 0) the lighting's exponents got exactly zero derivatives, and a fit
+    # reported success with them unchanged
+    vol = vs.data.phantom("shells", shape=8).astype(jnp.float64)
+    scene = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading="phong",
+                     composition="importance", importance=vs.Importance(intensity=2.0))
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(4, 4))
+    bounds = {"importance.specular_exponent": (1.0, None)}
+    with pytest.raises(eqx.EquinoxRuntimeError,
+                       match="does not depend on 'importance.specular_exponent'.*weight "
+                             r"\(importance.silhouette, .lighting or .unocclusion\) is 0"):
+        vs.fit(scene, cam, vs.render(scene, cam), params=bounds)
+    compiled = _solve._cached._cache_size()
+    # (set as Python floats: the fit makes them arrays, or jit would hold them static
+    # and compile the solver again)
+    lit = eqx.tree_at(lambda s: (s.importance.lighting, s.importance.specular_exponent),
+                      scene, (4.0, 10.0))
+    truth = eqx.tree_at(lambda s: s.importance.specular_exponent, lit, 6.0)
+    result = vs.fit(lit, cam, vs.render(truth, cam), params=bounds)
+    assert _solve._cached._cache_size() == compiled
+    assert float(result.loss) < 1e-3 * float(result.initial_loss)
+    np.testing.assert_allclose(result.values["importance.specular_exponent"], 6.0, rtol=1e-6)
 
 
 def _rosenbrock(y, scale):

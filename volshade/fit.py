@@ -513,7 +513,9 @@ def fit(
             offset and ``max_radius``, an opacity in ``(0, 1)``): a step outside
             would stop the fit with the kernel's runtime error. A parameter whose
             derivative is zero wherever it is defined (it selects voxels or pixels, or
-            is static configuration held in an array) is refused; an element the
+            is static configuration held in an array) is refused, and so is one the
+            image does not depend on at its initial value (switched off by a weight
+            of 0: one VJP before the solve tests it); an element of an array the
             image does not depend on (a control point outside the volume's range)
             gets no step. Two fields that hold one array object are fitted apart.
         solver: an ``optimistix`` least-squares solver or minimiser (e.g.
@@ -539,6 +541,9 @@ def fit(
             and radius), bad bounds or an initial value outside them or not finite
             (a background importance of ``-inf``), targets or
             weights that do not match the cameras, a solver of another kind.
+        equinox.EquinoxRuntimeError: a parameter the render does not depend on at its
+            initial value (every derivative of the image in it exactly 0: a weight of
+            0 switches it off), named with the setting to change.
 
     Example:
         >>> vol = vs.data.phantom("shells", shape=12)
@@ -568,23 +573,55 @@ def fit(
     for leaf, path in zip(leaves, named, strict=True):
         x = _checks.float_leaf(leaf, path, _WHERE)
         initial.append(jnp.array(x, dtype=x.dtype))
+    # numbers set with eqx.tree_at as arrays: jit would hold a Python float as static,
+    # and compile the solver again for every other value
+    scene = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float) else x, scene)
     problem = _Problem(scene=_placed(scene, where, initial),
                        cameras=tuple(c for c, _, _ in views),
                        targets=tuple(t for _, t, _ in views),
                        weights=tuple(w for _, _, w in views),
                        where=tuple(where), bounds=tuple(named.values()))
     u0 = [_from_bounded(x, named[p], p) for x, p in zip(initial, paths, strict=True)]
-    u, loss, initial_loss, steps, result = _solve(problem, u0, solver, max_steps, throw)
+    u, loss, initial_loss, steps, result = _solve(problem, u0, paths, solver, max_steps,
+                                                  throw)
     fitted, values = problem.place(u)
     return Fit(scene=fitted, values=dict(zip(paths, values, strict=True)), loss=loss,
                initial_loss=initial_loss, steps=steps, result=result)
 
 
+def _refuse_without_effect(problem: _Problem, u0: list[Array], paths: tuple[str, ...]
+                           ) -> tuple[list[Array], Array]:
+    r"""``u0``, refused (at run time) for a parameter the residuals do not depend on
+    there, and the initial loss. A weight of 0 switches measures off (with the default
+    :class:`~volshade.importance.Importance`, the silhouette's exponents and darkening,
+    the lighting's exponents and the unocclusion offset change nothing), and a solver
+    would stop at once and report success with the value unchanged. The test is one
+    VJP with a random cotangent $c$: $(J^T c)_k$ is exactly 0 for every element $k$ of
+    a parameter whose columns of $J$ are all 0, and almost never otherwise."""
+    residuals, vjp = jax.vjp(problem.residuals, u0)
+    keys = jax.random.split(jax.random.key(0), len(residuals))
+    (slopes,) = vjp([jax.random.normal(k, r.shape, r.dtype)
+                     for k, r in zip(keys, residuals, strict=True)])
+    checked = [
+        eqx.error_if(
+            ui, jnp.all(slope == 0),
+            f"{_WHERE}: the render does not depend on {path!r} at its initial value (its "
+            f"derivative is exactly 0 at every pixel), so a fit cannot move it. Another "
+            f"setting switches it off: an importance exponent, offset or darkening whose "
+            f"weight (importance.silhouette, .lighting or .unocclusion) is 0, any "
+            f"importance under a global weight of 0, an effect the scene's opacity never "
+            f"reaches. Turn that setting on (when you fit it too, start it away from 0) "
+            f"or leave {path!r} out.")
+        for ui, slope, path in zip(u0, slopes, paths, strict=True)]
+    return checked, sum(jnp.sum(r**2) for r in residuals)
+
+
 @eqx.filter_jit
-def _solve(problem: _Problem, u0: list[Array], solver, max_steps: int, throw: bool):
+def _solve(problem: _Problem, u0: list[Array], paths: tuple[str, ...], solver,
+           max_steps: int, throw: bool):
     """The solve, with the loss before and after it, as one compiled program (the
     losses compiled apart cost a second compile of the render: 2-3 s on a CPU)."""
-    initial_loss = problem.loss(u0)
+    u0, initial_loss = _refuse_without_effect(problem, u0, paths)
     solver = _default_solver(initial_loss.dtype) if solver is None else solver
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
         solution = optx.least_squares(_residuals, solver, u0, args=problem,
