@@ -22,6 +22,7 @@ from volshade.fit import (
     _parameters,
     _solve,
     _to_bounded,
+    _views,
 )
 
 
@@ -376,6 +377,20 @@ def _bad_call(**change):
 def test_bad_input_is_refused_with_the_fix(change, error, match):
     with pytest.raises(error, match=match):
         _bad_call(**change)
+
+
+def test_a_list_of_numbers_weighs_whole_views():
+    # with as many cameras as channels, a list of numbers is one weight per view, as
+    # documented; the channels of every view are weighed with [w] * V
+    cams = [vs.Camera.orbit(azimuth=a, image_shape=(2, 3)) for a in (0, 90, 180, 270)]
+    targets = [jnp.zeros((2, 3, 4))] * 4
+    per_view = [w for _, _, w in _views(cams, targets, [1, 1, 1, 0.5])]
+    np.testing.assert_array_equal(np.stack(per_view),
+                                  np.asarray([1, 1, 1, 0.5])[:, None, None, None]
+                                  * np.ones((4, 2, 3, 4)))
+    per_channel = [w for _, _, w in _views(cams, targets, [jnp.asarray([1, 1, 1, 0.5])] * 4)]
+    np.testing.assert_array_equal(np.stack(per_channel),
+                                  np.broadcast_to([1, 1, 1, 0.5], (4, 2, 3, 4)))
 
 
 def test_a_non_finite_target_is_refused():
