@@ -68,13 +68,15 @@ def test_fit_to_several_views_with_rgb_targets_weights_and_an_array_parameter():
     np.testing.assert_allclose(np.asarray(result.values["background"]), [0.2, 0.5, 0.7],
                                atol=1e-6)
     np.testing.assert_allclose(float(result.values["phong.ambient"]), 0.5, atol=1e-6)
-    # a fit of the same structure (another start) reuses the compiled solver
-    compiled = optx.least_squares._cached._cache_size()
-    again = vs.fit(eqx.tree_at(lambda s: (s.background, s.phong.ambient), start,
-                               (jnp.full(3, 0.3), jnp.asarray(0.7))),
+    # a fit of the same structure (another start) reuses the compiled solver, also when
+    # a number is set in the scene as a Python float (jit would hold it static)
+    compiled = optx.least_squares._cached._cache_size(), _solve._cached._cache_size()
+    again = vs.fit(eqx.tree_at(lambda s: (s.background, s.phong.ambient, s.phong.diffuse),
+                               start, (jnp.full(3, 0.3), jnp.asarray(0.7),
+                                       float(start.phong.diffuse))),
                    cams, targets, weights=weights,
                    params={"background": (0.0, 1.0), "phong.ambient": None})
-    assert optx.least_squares._cached._cache_size() == compiled
+    assert (optx.least_squares._cached._cache_size(), _solve._cached._cache_size()) == compiled
     np.testing.assert_allclose(float(again.values["phong.ambient"]), 0.5, atol=1e-6)
 
 
@@ -199,8 +201,7 @@ def test_a_minus_inf_start_is_refused_and_no_step_reports_the_initial_loss(monke
     # not), the solver takes no step: the loss is the start's, not zeros
     module = sys.modules["volshade.fit"]
     monkeypatch.setattr(module, "_from_bounded", lambda x, bounds, path: x)
-    monkeypatch.setattr(module, "_refuse_without_effect",
-                        lambda problem, u0, paths: (u0, problem.loss(u0)))
+    monkeypatch.setattr(module, "_refuse_unmoved", lambda u, u0, flat, paths: u)
     result = vs.fit(scene, cam, target, params=["importance.background"], throw=False)
     assert int(result.steps) == 0 and result.result != optx.RESULTS.successful
     assert float(result.loss) == float(result.initial_loss) > 0
@@ -220,15 +221,14 @@ def test_parameters_switched_off_by_a_zero_weight_are_refused_until_it_is_turned
                        match="does not depend on 'importance.specular_exponent'.*weight "
                              r"\(importance.silhouette, .lighting or .unocclusion\) is 0"):
         vs.fit(scene, cam, vs.render(scene, cam), params=bounds)
-    compiled = _solve._cached._cache_size()
-    # (set as Python floats: the fit makes them arrays, or jit would hold them static
-    # and compile the solver again)
-    lit = eqx.tree_at(lambda s: (s.importance.lighting, s.importance.specular_exponent),
-                      scene, (4.0, 10.0))
-    truth = eqx.tree_at(lambda s: s.importance.specular_exponent, lit, 6.0)
-    result = vs.fit(lit, cam, vs.render(truth, cam), params=bounds)
-    assert _solve._cached._cache_size() == compiled
-    assert float(result.loss) < 1e-3 * float(result.initial_loss)
+    # fitted with the weight that switches it on, from 0, it moves once the weight has
+    truth = eqx.tree_at(lambda s: (s.importance.lighting, s.importance.specular_exponent),
+                        scene, (4.0, 6.0))
+    start = eqx.tree_at(lambda s: s.importance.specular_exponent, scene, 10.0)
+    result = vs.fit(start, cam, vs.render(truth, cam),
+                    params={"importance.lighting": None, **bounds})
+    assert float(result.loss) < 1e-12 * float(result.initial_loss)
+    np.testing.assert_allclose(result.values["importance.lighting"], 4.0, rtol=1e-6)
     np.testing.assert_allclose(result.values["importance.specular_exponent"], 6.0, rtol=1e-6)
 
 

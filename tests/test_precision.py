@@ -94,3 +94,17 @@ def test_half_precision_features_weigh_importance_in_float32():
                                              intensity=jnp.ones(3, jnp.float16))
     assert importance.dtype == scale.dtype == jnp.float32
     np.testing.assert_array_equal(importance, 7e4)  # float16 overflowed to inf
+
+
+def test_cameras_and_foci_with_python_numbers_set_in_them():
+    # found by a review: the float32-at-least cast read `.dtype` of a number set with
+    # eqx.tree_at (AttributeError)
+    cam = vs.Camera.orbit(image_shape=(4, 5))
+    rays = eqx.tree_at(lambda c: c.fov, cam, 45.0).rays()
+    want = eqx.tree_at(lambda c: c.fov, cam, jnp.asarray(45.0)).rays()
+    for got, expected in zip(rays, want, strict=True):
+        np.testing.assert_array_equal(got, expected)
+    focus = vs.Focus(center=(0.37, 0.61), radius=0.2)
+    np.testing.assert_array_equal(eqx.tree_at(lambda f: f.radius, focus, 0.3).weights((6, 7)),
+                                  eqx.tree_at(lambda f: f.radius, focus,
+                                              jnp.asarray(0.3)).weights((6, 7)))

@@ -283,7 +283,8 @@ class Camera(eqx.Module):
         the camera's dtype, float32 at least (a half-precision pixel grid and basis
         would misplace the rays by a whole pixel)."""
         h, w = self.image_shape
-        camera = jax.tree.map(_checks.at_least_float32, self._valid())
+        camera = jax.tree.map(lambda x: _checks.at_least_float32(jnp.asarray(x)),
+                              self._valid())
         forward, right, up = camera.basis()
         dtype = forward.dtype
         y = 1 - 2 * (jnp.arange(h, dtype=dtype) + 0.5) / h

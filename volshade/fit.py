@@ -515,7 +515,9 @@ def fit(
             derivative is zero wherever it is defined (it selects voxels or pixels, or
             is static configuration held in an array) is refused, and so is one the
             image does not depend on at its initial value (switched off by a weight
-            of 0: one VJP before the solve tests it); an element of an array the
+            of 0: one VJP before the solve tests it) when the fit leaves it there
+            (fitted with the weight that switches it on, starting at 0, it moves once
+            the weight has); an element of an array the
             image does not depend on (a control point outside the volume's range)
             gets no step. Two fields that hold one array object are fitted apart.
         solver: an ``optimistix`` least-squares solver or minimiser (e.g.
@@ -547,7 +549,8 @@ def fit(
             weights that do not match the cameras, a solver of another kind.
         equinox.EquinoxRuntimeError: a parameter the render does not depend on at its
             initial value (every derivative of the image in it exactly 0: a weight of
-            0 switches it off), named with the setting to change.
+            0 switches it off) and that the fit left there, named with the settings
+            to look at (raised whatever ``throw`` is: it is a mistake in the call).
 
     Example:
         >>> vol = vs.data.phantom("shells", shape=12)
@@ -593,31 +596,38 @@ def fit(
                initial_loss=initial_loss, steps=steps, result=result)
 
 
-def _refuse_without_effect(problem: _Problem, u0: list[Array], paths: tuple[str, ...]
-                           ) -> tuple[list[Array], Array]:
-    r"""``u0``, refused (at run time) for a parameter the residuals do not depend on
-    there, and the initial loss. A weight of 0 switches measures off (with the default
-    :class:`~volshade.importance.Importance`, the silhouette's exponents and darkening,
-    the lighting's exponents and the unocclusion offset change nothing), and a solver
-    would stop at once and report success with the value unchanged. The test is one
-    VJP with a random cotangent $c$: $(J^T c)_k$ is exactly 0 for every element $k$ of
-    a parameter whose columns of $J$ are all 0, and almost never otherwise."""
+def _without_effect(problem: _Problem, u0: list[Array]) -> tuple[list[Array], Array]:
+    r"""Whether the residuals do not depend on each parameter at ``u0`` (one flag per
+    parameter), and the initial loss. The test is one VJP with a random cotangent
+    $c$: $(J^T c)_k$ is exactly 0 for every element $k$ of a parameter whose columns of
+    $J$ are all 0, and almost never otherwise."""
     residuals, vjp = jax.vjp(problem.residuals, u0)
     keys = jax.random.split(jax.random.key(0), len(residuals))
     (slopes,) = vjp([jax.random.normal(k, r.shape, r.dtype)
                      for k, r in zip(keys, residuals, strict=True)])
-    checked = [
+    return [jnp.all(slope == 0) for slope in slopes], sum(jnp.sum(r**2) for r in residuals)
+
+
+def _refuse_unmoved(u: list[Array], u0: list[Array], flat: list[Array],
+                    paths: tuple[str, ...]) -> list[Array]:
+    """``u``, refused (at run time) for a parameter the residuals did not depend on at
+    the start and that the fit left there. A weight of 0 switches measures off (with
+    the default :class:`~volshade.importance.Importance`, the silhouette's and the
+    lighting's exponents, the darkening and the unocclusion offset change nothing),
+    and a solver stopped at once and reported success with the value unchanged. A
+    parameter switched on by another one fitted with it (its weight, starting at 0)
+    moves once that one has, and is not refused."""
+    return [
         eqx.error_if(
-            ui, jnp.all(slope == 0),
+            ui, flat_i & jnp.all(ui == u0_i),
             f"{_WHERE}: the render does not depend on {path!r} at its initial value (its "
-            f"derivative is exactly 0 at every pixel), so a fit cannot move it. Another "
-            f"setting switches it off: an importance exponent, offset or darkening whose "
-            f"weight (importance.silhouette, .lighting or .unocclusion) is 0, any "
+            f"derivative is exactly 0 at every compared pixel), and the fit left it there. "
+            f"Something switches it off: an importance exponent, offset or darkening "
+            f"whose weight (importance.silhouette, .lighting or .unocclusion) is 0, any "
             f"importance under a global weight of 0, an effect the scene's opacity never "
-            f"reaches. Turn that setting on (when you fit it too, start it away from 0) "
-            f"or leave {path!r} out.")
-        for ui, slope, path in zip(u0, slopes, paths, strict=True)]
-    return checked, sum(jnp.sum(r**2) for r in residuals)
+            f"reaches, an initial value on its bound, or pixels and channels it changes "
+            f"all weighted 0. Turn that on or leave {path!r} out.")
+        for ui, u0_i, flat_i, path in zip(u, u0, flat, paths, strict=True)]
 
 
 @eqx.filter_jit
@@ -625,7 +635,7 @@ def _solve(problem: _Problem, u0: list[Array], paths: tuple[str, ...], solver,
            max_steps: int, throw: bool):
     """The solve, with the loss before and after it, as one compiled program (the
     losses compiled apart cost a second compile of the render: 2-3 s on a CPU)."""
-    u0, initial_loss = _refuse_without_effect(problem, u0, paths)
+    flat, initial_loss = _without_effect(problem, u0)
     solver = _default_solver(initial_loss.dtype) if solver is None else solver
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
         solution = optx.least_squares(_residuals, solver, u0, args=problem,
@@ -639,8 +649,9 @@ def _solve(problem: _Problem, u0: list[Array], paths: tuple[str, ...], solver,
         solution = optx.minimise(_relative_loss, solver, u0, args=(problem, scale),
                                  max_steps=max_steps, throw=throw)
     steps = solution.stats["num_steps"]
-    return (solution.value, _final_loss(solver, solution, problem, scale, initial_loss),
-            initial_loss, steps, solution.result)
+    return (_refuse_unmoved(solution.value, u0, flat, paths),
+            _final_loss(solver, solution, problem, scale, initial_loss), initial_loss, steps,
+            solution.result)
 
 
 def _final_loss(solver, solution: optx.Solution, problem: _Problem,
