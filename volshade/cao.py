@@ -12,7 +12,9 @@ the volume.
 
 Here the affected voxels are gathered into bricks of ``brick_size`` and only the
 bricks holding one are marched (``volshade.lao``'s bricked march: compacted,
-vmapped groups of padded windows); when more than half of the bricks are affected
+vmapped groups of padded windows; the empty slots of the last group are marched
+too, and a group is at most an eighth of the bricks); when more than half of the
+bricks are affected
 the whole clipped volume is marched instead, which is then cheaper. The clip's pose
 is traced, so a moving clip never recompiles; under ``jax.vmap`` (a batch of poses)
 the poses run one after another, each marching only its own bricks.
@@ -158,7 +160,8 @@ def affected_fraction(shape: tuple[int, int, int], clip: Clip, *, radius: float,
                       brick_size: int = 8) -> float:
     """The fraction of the bricks that hold a voxel the clip can change (a concrete
     number, for benchmarks and for choosing ``brick_size``): what
-    :func:`contextual_ao` marches, up to one half; above, it marches the whole volume."""
+    :func:`contextual_ao` marches, up to one half, rounded up to whole groups of
+    bricks (each at most an eighth of them); above, it marches the whole volume."""
     brick_size = _checks.positive_int(brick_size, "brick_size", "volshade.cao.affected_fraction")
     return float(jnp.mean(_bricks_holding(affected_mask(shape, clip, radius=radius),
                                           brick_size)))

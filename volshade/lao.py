@@ -453,11 +453,13 @@ def _marchers(pad, directions, weights, radius, offset, samples, correction):
 def _brick_group(brick: int, window: tuple[int, int, int], n_bricks: int) -> int:
     """How many bricks are marched together, vectorised: about $2^{16}$ voxels on a CPU
     (a group's working set then stays in cache; measured best of $2^{16}$, $2^{18}$,
-    $2^{20}$) and $2^{21}$ elsewhere, where one kernel needs that many threads; and
-    never more than $2^{24}$ voxels of padded windows (a halo wide against the brick
-    would otherwise make a group's windows many volumes large)."""
+    $2^{20}$) and $2^{21}$ elsewhere, where one kernel needs that many threads; never
+    more than $2^{24}$ voxels of padded windows (a halo wide against the brick would
+    otherwise make a group's windows many volumes large); and at most an eighth of
+    the bricks, since the empty slots of the last group are marched too (a group of
+    all the bricks marched a whole 32^3 volume for one affected brick)."""
     target = 2**16 if jax.default_backend() == "cpu" else 2**21
-    return max(1, min(n_bricks, target // brick**3, 2**24 // math.prod(window)))
+    return max(1, min(-(-n_bricks // 8), target // brick**3, 2**24 // math.prod(window)))
 
 
 _MAX_ACTIVE_FRACTION = 0.5
