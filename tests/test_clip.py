@@ -161,6 +161,8 @@ def test_bad_clips_raise_clear_errors():
             vs.HalfSpaceClip(center=centre)
     with pytest.raises(ValueError, match="orthonormal"):
         vs.BoxClip(center=(1.0, 2.0, 3.0), half_size=1.0, rotation=2 * np.eye(3))
+    with pytest.raises(ValueError, match="`rotation` must be finite"):  # not "orthonormal"
+        vs.BoxClip(center=(1.0, 2.0, 3.0), half_size=1.0, rotation=np.eye(3) * [np.nan, 1, 1])
     with pytest.raises(ValueError, match=r"`rotation` must be a 3x3"):
         vs.TorusClip(center=(1.0, 2.0, 3.0), major=2.0, minor=1.0, rotation=np.eye(2))
     with pytest.raises(ValueError, match="`half_size` must be finite and > 0"):

@@ -351,6 +351,21 @@ def test_merge_refuses_bad_opacities_under_jit(merge):
             jax.block_until_ready(merged(ao, ao.at[0, 1, 2, 3].set(bad)))
 
 
+def test_traced_bad_radius_is_refused_naming_feature_ao():
+    # found by a review: under jit the loop's own check fired first, naming volshade.lao
+    vol = _shells(8)
+    features = [vs.IntervalFeature(0.2, 0.4), vs.IntervalFeature(0.8, 1.0)]
+    base = vs.transfer.preset("shells")
+    fn = eqx.filter_jit(lambda r: vs.feature_ao(vol, features=features, base=base,
+                                                directions=DIRS, radius=r, samples=3))
+    module = eqx.filter_jit(lambda r: vs.FeatureAmbientOcclusion(
+        features, lao=vs.LocalAmbientOcclusion(r, directions=DIRS, samples=3))(vol, base=base))
+    for call, name in ((fn, "volshade.feature_ao"), (module, "volshade.FeatureAmbientOcclusion")):
+        for bad, why in ((jnp.nan, "`radius` finite"), (-1.0, "`radius` must be > `offset`")):
+            with pytest.raises(eqx.EquinoxRuntimeError, match=f"{name}: .*{why}"):
+                jax.block_until_ready(call(jnp.asarray(bad)))
+
+
 def test_bad_inputs_raise_clear_errors():
     vol = _shells(8)
     kw = dict(directions=DIRS, radius=3.0, samples=4)

@@ -200,6 +200,21 @@ def test_user_callable_rho_and_dtype():
                                atol=1e-6)
 
 
+def test_a_user_rho_that_is_not_finite_or_elementwise_is_refused():
+    # found by a review: sqrt(2 - d) gave NaN beyond 2 voxels, silently
+    vol = jnp.zeros((6, 6, 6)).at[3:].set(1.0)
+    bad_rho = lambda d, dm: jnp.sqrt(2.0 - d)  # noqa: E731
+    with pytest.raises(ValueError, match=r"`rho\(d, d_max\)` returned NaN or inf"):
+        obscurance(vol, directions=DIRS12, d_max=4.0, rho=bad_rho)
+    traced = jax.jit(lambda v, dm: obscurance(v, directions=DIRS12, d_max=dm, rho=bad_rho))
+    with pytest.raises(Exception, match=r"`rho\(d, d_max\)` returned NaN or inf"):
+        jax.block_until_ready(traced(vol, 4.0))
+    assert bool(jnp.all(jnp.isfinite(traced(vol, 1.5))))  # finite where it is used
+    # the shape quoted is that of the `d` the rho was given (the volume's axes reordered)
+    with pytest.raises(ValueError, match=r"the shape of `d`, here \(\d+, \d+, \d+\)"):
+        obscurance(jnp.zeros((3, 11, 7)), directions=DIRS12, d_max=3.0, rho=lambda d, m: d[0])
+
+
 class _PowerRho(eqx.Module):
     """rho = (d / d_max)^p with a differentiable exponent."""
 

@@ -68,7 +68,9 @@ def _pose(center, rotation, where: str) -> tuple[Array, Array]:
                          f"{rotation.shape}.")
     _checks.refuse(center, [(_checks.non_finite(center).any(), "`center` must be finite "
                              "(voxels).")], where, traced=False)
-    _checks.refuse(rotation, [(~_orthonormal(rotation), "`rotation` must be orthonormal (a "
+    _checks.refuse(rotation, [(_checks.non_finite(rotation).any(), "`rotation` must be "
+                               "finite (NaN or inf in it)."),
+                              (~_orthonormal(rotation), "`rotation` must be orthonormal (a "
                                "rotation matrix): the signed distance is exact only then.")],
                    where, traced=False)
     return center, rotation

@@ -288,12 +288,11 @@ def feature_ao(
     """
     _checks.option(merge, MERGES, "merge", _WHERE)
     _checks.option(implementation, _IMPLEMENTATIONS, "implementation", _WHERE)
-    opacities = _feature_opacities(volume, features, base, step, _WHERE)
-    # lao's checks, here: on values known now they raise at once, naming feature_ao (in
-    # the compiled loop below they would be run-time errors)
-    _prepare(opacities[0], directions=directions, radius=radius, offset=offset,
-             samples=samples, weights=weights, opacity_correction=opacity_correction,
-             brick_size=brick_size, max_radius=max_radius, where=_WHERE)
+    opacities = _checked(_feature_opacities(volume, features, base, step, _WHERE),
+                         dict(directions=directions, radius=radius, offset=offset,
+                              samples=samples, weights=weights,
+                              opacity_correction=opacity_correction,
+                              brick_size=brick_size, max_radius=max_radius), _WHERE)
     known = _concrete(radius)
     if max_radius is None and known is not None:
         # the padding lao sizes from a known radius, as a static bound: other radii up to
@@ -305,6 +304,15 @@ def feature_ao(
                                    brick_size=brick_size, max_radius=max_radius,
                                    implementation=implementation)
     return _merged(opacities, params, merge)
+
+
+def _checked(opacities: Array, arguments: dict, where: str) -> Array:
+    """``opacities`` after :func:`~volshade.lao.lao`'s checks of ``arguments``, naming
+    ``where``: values known now raise at once, and the checks of traced ones are tied to
+    the first feature's opacity, so that they fail at run time naming ``where`` before
+    the compiled loop's own checks, which would name ``volshade.lao``."""
+    prepared = _prepare(opacities[0], **arguments, where=where)
+    return opacities.at[0].set(prepared.alpha.astype(opacities.dtype))
 
 
 @eqx.filter_jit
@@ -366,8 +374,6 @@ class FeatureAmbientOcclusion(eqx.Module):
         """Feature-driven AO of ``volume``: :func:`feature_ao` with these parameters
         (``base`` and ``step`` as there)."""
         where = "volshade.FeatureAmbientOcclusion"
-        opacities = _feature_opacities(volume, self.features, base, step, where)
-        # as in feature_ao: values known now (e.g. a radius set with eqx.tree_at) are
-        # refused at once
-        _prepare(opacities[0], **self.lao._arguments(), where=where)
+        opacities = _checked(_feature_opacities(volume, self.features, base, step, where),
+                             self.lao._arguments(), where)
         return _merged(opacities, self.lao, self.merge)

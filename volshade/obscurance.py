@@ -553,7 +553,10 @@ def obscurance(
             the traced program), of any length.
         d_max: maximum occluder distance in voxels, a scalar > 0; dynamic and
             differentiable (through $\rho$; the cut-off $d \le d_{max}$ is piecewise
-            constant).
+            constant). An occluder at exactly ``d_max`` counts; distances are whole
+            multiples of a direction's step, so a ``d_max`` computed as one sits on the
+            cut-off, where float32 and float64 may round either way: choose it
+            between multiples.
         rho: ``"ao"``, ``"linear"``, ``"exponential"``, ``"sqrt"`` (section 3.2, see
             :data:`RHO_FUNCTIONS`) or a callable ``rho(d, d_max)`` evaluated
             elementwise on occluded directions ($0 < d \le d_{max}$); the array
@@ -576,7 +579,8 @@ def obscurance(
         ValueError / equinox.EquinoxRuntimeError (traced: at run time)
             (``jax.jit`` may report it as a ``JaxRuntimeError`` carrying the same
             message): NaN/inf in ``density``, ``colors`` outside $[0, 1]$ or NaN, a
-            traced ``d_max`` that is not a finite number > 0.
+            traced ``d_max`` that is not a finite number > 0, a callable ``rho`` that
+            returns NaN or inf.
         TypeError: non-numeric inputs, an int or traced ``directions``.
 
     Noisy densities (MRI, CT) speckle the obscurance: the strict "greater than"
@@ -627,9 +631,15 @@ def obscurance(
     rho_arrays, rho_rest = eqx.partition(rho_fn, eqx.is_array)
     if not jax.tree_util.tree_leaves(rho_arrays):
         rho_rest = rho_fn  # as given: partition would rebuild a pytree rho at every call
-    return _obscurance(density, d_max, colors, ambient if bleeding else None, rho_arrays,
-                       dirs=_static_dirs(dirs), rho_rest=_Static(rho_rest, rho_fn),
-                       columns_last=_columns_last())
+    out = _obscurance(density, d_max, colors, ambient if bleeding else None, rho_arrays,
+                      dirs=_static_dirs(dirs), rho_rest=_Static(rho_rest, rho_fn),
+                      columns_last=_columns_last())
+    if callable(rho):
+        # the named rho functions are finite on (0, d_max]; a user's may not be
+        out = _checks.refuse(out, [(~jnp.all(jnp.isfinite(out)),
+                                    "`rho(d, d_max)` returned NaN or inf for some distance "
+                                    "0 < d <= d_max; make it finite there.")], where)
+    return out
 
 
 class _Static:
@@ -687,7 +697,8 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
             if value.shape != safe_dist.shape:
                 raise ValueError(
                     f"volshade.obscurance.obscurance: `rho(d, d_max)` must return one value "
-                    f"per distance (elementwise, shape {safe_dist.shape}), got shape "
+                    f"per distance (elementwise: the shape of `d`, here {safe_dist.shape}, "
+                    f"the volume's axes reordered along the direction's lines), got shape "
                     f"{value.shape}.")
             if not bleeding:
                 return acc + jnp.where(occluded, value, jnp.ones_like(value)), None
