@@ -256,6 +256,9 @@ def test_bad_inputs_raise_clear_errors():
                          radius=0.5, offset=1.0)
     with pytest.raises(ValueError, match="`brick_size` must be >= 1"):
         vs.contextual_ao(ALPHA, clip=CLIPS["box"], unclipped=unclipped, brick_size=0, **KW)
+    # named for the function called (it named volshade.affected_mask)
+    with pytest.raises(ValueError, match="volshade.cao.affected_fraction: `radius` must be"):
+        affected_fraction(ALPHA.shape, CLIPS["box"], radius=float("nan"))
 
 
 @pytest.mark.parametrize("samples", [6, 1])  # M = 1 takes no sample but checks as much

@@ -43,7 +43,15 @@ from jax import lax
 
 from . import _checks
 from ._types import ArrayLike, Float, Volume
-from .clip import Clip, _checked, _clip, _removed, _voxel_distances, _within_reach, affected_mask
+from .clip import (
+    Clip,
+    _affected_mask,
+    _checked,
+    _clip,
+    _removed,
+    _voxel_distances,
+    _within_reach,
+)
 from .lao import (
     _MAX_ACTIVE_FRACTION,
     _bricked,
@@ -162,6 +170,7 @@ def affected_fraction(shape: tuple[int, int, int], clip: Clip, *, radius: float,
     number, for benchmarks and for choosing ``brick_size``): what
     :func:`contextual_ao` marches, up to one half, rounded up to whole groups of
     bricks (each at most an eighth of them); above, it marches the whole volume."""
-    brick_size = _checks.positive_int(brick_size, "brick_size", "volshade.cao.affected_fraction")
-    return float(jnp.mean(_bricks_holding(affected_mask(shape, clip, radius=radius),
+    where = "volshade.cao.affected_fraction"
+    brick_size = _checks.positive_int(brick_size, "brick_size", where)
+    return float(jnp.mean(_bricks_holding(_affected_mask(shape, clip, radius, where),
                                           brick_size)))

@@ -381,7 +381,11 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``radius`` not
             a finite number > 0; a bad ``clip`` leaf (as for :func:`clip_mask`).
     """
-    where = "volshade.affected_mask"
+    return _affected_mask(shape, clip, radius, "volshade.affected_mask")
+
+
+def _affected_mask(shape, clip, radius, where: str) -> Array:
+    """:func:`affected_mask`, its errors naming ``where``."""
     clip = _clip(clip, where)
     radius = _checks.scalar(radius, "radius", where)
     radius = _checks.refuse(radius, [(_checks.not_positive(radius),
