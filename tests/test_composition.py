@@ -454,9 +454,10 @@ def test_gradient_at_singular_points_is_finite_for_standard():
 # transparent sample behind a nonempty ray (equal and unequal importances), a transparent
 # first sample of the importance of the samples behind it, and an opaque sample that ties
 # the next sample's importance (K = I_s exactly; any opacity below 1 puts that sample
-# behind). (A transparent first sample of another importance, and a transparent sample
-# that would lift K onto a later importance, are points where eq. 8 is not
-# differentiable: see importance_step.)
+# behind). (A transparent sample that would lift K onto a later importance is a point
+# where eq. 8 is not differentiable; a transparent first sample of another importance
+# gets standard compositing's derivative, which misses the modulation its importance
+# brings to the samples behind: see importance_step.)
 ONE_SIDED_CASES = {
     "zero_behind_equal": ([0.5, 0.0, 0.5], [0.0, 0.0, 0.0], 1, None),
     "zero_behind_important": ([0.5, 0.0, 0.5], [0.0, 3.0, 1.0], 1, None),
@@ -614,6 +615,8 @@ def test_errors():
         composite(c, a, background_importance=1.0)
     with pytest.raises(ValueError, match="background"):
         composite(c, a, background=np.zeros(4))
+    with pytest.raises(ValueError, match="`background` must be >= 0"):  # as colours are
+        composite(c, a, background=[-1.0, 0.0, 0.0])
     with pytest.raises(TypeError, match="colors"):
         composite(c.astype(complex), a)
     with pytest.raises(ValueError, match="`alphas` contains NaN or inf"):

@@ -21,6 +21,25 @@ def test_piecewise_linear_values():
     np.testing.assert_allclose(tf.color(jnp.array(0.75)), [0.5, 0, 0.5])
 
 
+@pytest.mark.parametrize("dtype, unit, refused", [
+    (jnp.float32, 1e-12, False), (jnp.float32, 1e-15, True), (jnp.float64, 1e-15, False),
+    (jnp.float64, 1e-32, True), (jnp.float32, 1e20, False)])
+def test_points_closer_than_the_interpolations_resolution_are_refused(dtype, unit, refused):
+    # found by a review: jnp.interp takes gaps under an absolute 1.4e-14 (float32) for
+    # steps, so points 1e-15 apart classified 0.25 of the way as the first point
+    tf = TransferFunction.from_points([(0.0, 0, 0, 0, 0.0), (unit, 1, 0.5, 0, 1.0),
+                                       (2 * unit, 0, 0, 1, 0.0)])
+    x = np.asarray([0.0, 0.25, 0.5, 1.0, 1.5, 2.0])
+    volume = jnp.asarray(x * unit, dtype)
+    if refused:
+        with pytest.raises(ValueError, match=r"`points` must lie more than .* apart in "
+                                             f"{jnp.dtype(dtype).name}.*rescale"):
+            tf.opacity(volume)
+        return
+    np.testing.assert_allclose(tf.opacity(volume), np.interp(x, [0, 1, 2], [0, 1, 0]),
+                               rtol=1e-6, atol=1e-6)
+
+
 def test_opacity_correction_matches_extinction():
     tf = _tf()
     x = jnp.linspace(0, 1, 9)

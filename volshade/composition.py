@@ -368,16 +368,21 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     $\alpha_s = 0$ and 1 and for importance gaps of $10^4$; at $\alpha_s = 0$ and
     1 they are the one-sided derivatives (an opacity cannot leave [0, 1]), of
     order $1 / (m\,\alpha_i)$ at most behind a transparent sample of high
-    importance, which is what an opacity rising from 0 there does. Two kinds of
-    points have no derivative, and get one side's: a tie $K_i = I_s$ (an equality
-    of importances) is taken as behind, which is the one-sided derivative where
-    an opaque sample made $K = I_s$ (any opacity below 1 puts the next equal
-    importance behind) and not where a transparent sample's opacity would lift
-    $K$ onto a later importance; and on an empty ray meeting transparent samples
-    of different importances (the importance that an opacity rising from 0 brings
-    to the samples behind depends on which of them rises first, and how fast),
-    the gradient is that of standard compositing, exact where those samples'
-    importance equals the next ones'. The clamp
+    importance, which is what an opacity rising from 0 there does. A tie
+    $K_i = I_s$ (an equality of importances) has no derivative and is taken as
+    behind, which is the one-sided derivative where an opaque sample made
+    $K = I_s$ (any opacity below 1 puts the next equal importance behind) and not
+    where a transparent sample's opacity would lift $K$ onto a later importance.
+    **Not exact:** a transparent sample on an empty ray gets the derivative of
+    standard compositing. Its opacity rising from 0 gives the ray its importance,
+    $K = I_s$, which modulates the samples behind by $e^{\min(0,\, I_s - I_j)}$;
+    the state keeps an empty ray's $K = -\infty$ there ($m = 1$), so that
+    modulation is missing from the derivative (a transparent sample of importance 0
+    in front of one of importance 4 and opacity 0.7: 1.0 where the one-sided
+    derivative is $e^{-4} = 0.018$; with other colours the sign can differ too).
+    It is exact where those importances are equal. A fit of importance-aware
+    opacities should start them above 0 (e.g. $10^{-6}$), where the derivative
+    is exact. The clamp
     $\delta_{i+1} \le 0$ only removes rounding (the exact value never exceeds 0),
     so its derivative is taken as 1. A sample with $\alpha_s = 0$ changes
     nothing, bit for bit (a colour given with it too), and with equal importances everywhere
@@ -714,7 +719,9 @@ def composite(
     samples with all rays carried at once (on a CPU reading the samples in place;
     see the module docstring). Importance-aware gradients come from a hand-derived
     reverse-mode adjoint of the ``lax.scan`` over the samples: ``jax.grad`` and
-    ``jax.vjp`` work, forward mode does not.
+    ``jax.vjp`` work, forward mode does not. They are not exact for transparent
+    samples in front of a ray's first visible one (see :func:`importance_step`):
+    start fitted opacities above 0.
 
     Args:
         colors: ``(..., S, 3)`` opacity-weighted colours $C_s = \alpha_s c_s$ of
@@ -745,8 +752,8 @@ def composite(
     Raises:
         ValueError: mismatched shapes, ``background_importance`` without
             ``importance``, ``unroll < 1``; NaN/inf in the inputs, alphas outside
-            [0, 1] or negative colours (traced: ``equinox.EquinoxRuntimeError`` at run
-            time).
+            [0, 1], negative colours or a negative background (traced:
+            ``equinox.EquinoxRuntimeError`` at run time).
         TypeError: non-numeric inputs.
 
     Example:
@@ -788,7 +795,8 @@ def composite(
         bg = jnp.zeros((*batch, 3), dtype)
     else:
         bg = _checks.finite(_checks.as_float_array(background, "background", where).astype(dtype),
-                            "background", where)
+                            "background", where, non_negative=True,
+                            hint="(an RGB colour; light is not negative)")
         if bg.shape[-1:] != (3,) or not _checks.broadcasts(bg.shape, (*batch, 3)):
             raise ValueError(f"{where}: `background` must be an RGB colour that broadcasts to "
                              f"the rays, (..., 3) = {(*batch, 3)}, got {bg.shape}.")

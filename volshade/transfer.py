@@ -123,9 +123,17 @@ class TransferFunction(eqx.Module):
         points = tf.points.astype(volume.dtype)
         # (an elementwise test: an empty volume has no value outside, and is classified)
         outside = jnp.any((volume < points[0]) | (volume > points[-1]))
-        # interpolation would classify all those values like the end points (a 0-255
-        # volume through a [0, 1] transfer function renders as one solid blob)
+        # jnp.interp takes points closer than this for a step (a volume in units of
+        # 1e-15 classified 0.25 of the way between two points as the first point's)
+        resolution = float(np.spacing(np.finfo(volume.dtype).eps))
         return tf, _checks.refuse(volume, [(
+            jnp.any(jnp.diff(points) <= resolution),
+            f"the transfer function's `points` must lie more than {resolution:.1e} apart "
+            f"in {volume.dtype.name}, the volume's dtype (jnp.interp, which classifies, "
+            f"takes closer points for a step); rescale the volume and the points, e.g. "
+            f"to [0, 1]."), (
+            # interpolation would classify all those values like the end points (a 0-255
+            # volume through a [0, 1] transfer function renders as one solid blob)
             outside,
             "`volume` has values outside the transfer function's control points "
             "[points[0], points[-1]], which would all be classified like the end points; "
