@@ -2,6 +2,7 @@ import pathlib
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 from skimage import io
@@ -116,6 +117,23 @@ def _scene_of(argv, monkeypatch):
     with pytest.raises(_Built) as stop:
         cli.main(["render", *argv])
     return stop.value.args[0]
+
+
+def test_out_of_memory_is_one_line_and_status_2(tmp_path, monkeypatch, capsys):
+    # found by a review: --size 100000 ended in NumPy's MemoryError traceback and
+    # --image 200000 in XLA's RESOURCE_EXHAUSTED (simulated here: the machine would swap)
+    argv = ["render", "shells", "--out", str(tmp_path / "x.png"), "--size", "8"]
+    for err in (MemoryError(), jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory")):
+        def fail(args, err=err):
+            raise err
+        monkeypatch.setattr(cli, "render_command", fail)
+        assert cli.main(argv) == 2
+        assert "out of memory; lower --size or --image" in capsys.readouterr().err
+    # other run-time errors are bugs: their traceback is kept
+    monkeypatch.setattr(cli, "render_command", lambda args: (_ for _ in ()).throw(
+        jax.errors.JaxRuntimeError("INTERNAL: something else")))
+    with pytest.raises(jax.errors.JaxRuntimeError, match="INTERNAL"):
+        cli.main(argv)
 
 
 def test_ambient_options_in_mm_and_the_defaults_for_real_data(tmp_path, monkeypatch):

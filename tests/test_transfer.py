@@ -213,6 +213,12 @@ def test_a_negative_or_non_finite_step_is_refused():
                 method(x, step=step)
         with pytest.raises(Exception, match="`step` must be a finite segment length"):
             jax.block_until_ready(jax.jit(lambda s: tf.opacity(x, step=s))(step))
+    # one length per value, or one for all (it was a raw broadcasting error)
+    np.testing.assert_allclose(tf.opacity(x, step=[1.0, 0.0])[1], 0.0)
+    for method in (tf.opacity, tf):
+        with pytest.raises(ValueError, match=r"`step` must be one length or broadcast to the "
+                                             r"volume's shape \(2,\), got shape \(3,\)"):
+            method(x, step=[1.0, 2.0, 3.0])
 
 
 def test_float32_volumes_are_classified_in_float32_whatever_the_control_values_dtype():

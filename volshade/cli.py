@@ -353,6 +353,13 @@ def main(argv: list[str] | None = None) -> int:
     except eqx.EquinoxRuntimeError as err:  # a run-time check (e.g. NaN in a parameter)
         print(f"volshade: error: {_check_message(err)}", file=sys.stderr)
         return 2
+    except (MemoryError, jax.errors.JaxRuntimeError) as err:
+        # NumPy's or XLA's allocation; other run-time errors are bugs, with a traceback
+        if not isinstance(err, MemoryError) and "RESOURCE_EXHAUSTED" not in str(err):
+            raise
+        print("volshade: error: out of memory; lower --size or --image, or raise "
+              "--downsample (or a render's --step).", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -416,8 +416,8 @@ def _sample_importance(params, scalars, vectors, global_weight):
         raise ValueError(f"{where}: feature shapes {shapes} do not broadcast to one batch shape.") \
             from err
     # float32 at least: a float16 weighted sum overflows (intensity 7e4 is inf)
-    dtype = _checks.at_least_float32(jnp.zeros((), jnp.result_type(*scalars.values(),
-                                                                   *vectors.values()))).dtype
+    dtype = jnp.promote_types(jnp.result_type(*scalars.values(), *vectors.values()),
+                              jnp.float32)
     scalars = {k: jnp.broadcast_to(v.astype(dtype), batch) for k, v in scalars.items()}
     vectors = {k: jnp.broadcast_to(v.astype(dtype), (*batch, 3)) for k, v in vectors.items()}
     p = {k: jnp.asarray(v).astype(dtype) for k, v in _leaves(params).items()}

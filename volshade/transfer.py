@@ -38,11 +38,15 @@ from ._types import Array, Float
 _WHERE = "volshade.TransferFunction"
 
 
-def _step(step: Any, where: str) -> Array | None:
-    """A segment length for opacity correction: finite and >= 0 mm (0: opacity 0)."""
+def _step(step: Any, where: str, shape: tuple[int, ...]) -> Array | None:
+    """A segment length for opacity correction: finite and >= 0 mm (0: opacity 0), one
+    or one per value (broadcasting to the volume's ``shape``)."""
     if step is None:
         return None
     step = _checks.as_float_array(step, "step", where)
+    if not _checks.broadcasts(step.shape, shape):
+        raise ValueError(f"{where}: `step` must be one length or broadcast to the volume's "
+                         f"shape {shape}, got shape {step.shape}.")
     return _checks.refuse(step, [(~(jnp.isfinite(step) & (step >= 0)),
                                   "`step` must be a finite segment length >= 0 mm (a "
                                   "length of 0 has opacity 0).")], where)
@@ -211,7 +215,7 @@ class TransferFunction(eqx.Module):
             TypeError: ``volume`` not real numbers (complex, strings).
         """
         tf, volume = self._checked(volume, f"{_WHERE}.opacity")
-        return tf._opacity(volume, _step(step, f"{_WHERE}.opacity"))
+        return tf._opacity(volume, _step(step, f"{_WHERE}.opacity", volume.shape))
 
     def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
         r"""Extinction $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
@@ -228,7 +232,7 @@ class TransferFunction(eqx.Module):
         """``(color, opacity)`` of each value; NaN or inf, and values outside
         ``[points[0], points[-1]]``, are refused (as by :meth:`opacity`)."""
         tf, volume = self._checked(volume, f"{_WHERE}.__call__")
-        return tf._rgba(volume, _step(step, f"{_WHERE}.__call__"))
+        return tf._rgba(volume, _step(step, f"{_WHERE}.__call__", volume.shape))
 
 
 def _ordered(xp, low, high):
