@@ -230,6 +230,14 @@ def finite_problems(arr: Array, name: str, *, unit_range: bool = False,
     return checks
 
 
+def holds_non_finite(arr: Array) -> Array:
+    """Whether ``arr`` holds NaN or inf, as a ``bad`` for :func:`refuse` with a message
+    of the caller's (the reduction of :func:`finite`: one compiled program for a large
+    concrete array)."""
+    (bad,) = _value_flags(arr, finite=True, unit_range=False)
+    return bad
+
+
 def in_unit_range(arr: Array, name: str, where: str, *, hint: str = _OPACITY_HINT,
                   traced: bool = True) -> Array:
     """``arr``, refused (:func:`refuse`, ``traced`` as there) when it holds values outside

@@ -283,7 +283,7 @@ class Camera(eqx.Module):
         the camera's dtype, float32 at least (a half-precision pixel grid and basis
         would misplace the rays by a whole pixel)."""
         h, w = self.image_shape
-        camera = jax.tree.map(lambda x: _checks.at_least_float32(jnp.asarray(x)),
+        camera = jax.tree.map(lambda x: _checks.as_working_float(x, "camera", "volshade.Camera"),
                               self._valid())
         forward, right, up = camera.basis()
         dtype = forward.dtype

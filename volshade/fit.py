@@ -617,17 +617,16 @@ def _refuse_unmoved(u: list[Array], u0: list[Array], flat: list[Array],
     and a solver stopped at once and reported success with the value unchanged. A
     parameter switched on by another one fitted with it (its weight, starting at 0)
     moves once that one has, and is not refused."""
-    return [
-        eqx.error_if(
-            ui, flat_i & jnp.all(ui == u0_i),
-            f"{_WHERE}: the render does not depend on {path!r} at its initial value (its "
-            f"derivative is exactly 0 at every compared pixel), and the fit left it there. "
-            f"Something switches it off: an importance exponent, offset or darkening "
-            f"whose weight (importance.silhouette, .lighting or .unocclusion) is 0, any "
-            f"importance under a global weight of 0, an effect the scene's opacity never "
-            f"reaches, an initial value on its bound, or pixels and channels it changes "
-            f"all weighted 0. Turn that on or leave {path!r} out.")
-        for ui, u0_i, flat_i, path in zip(u, u0, flat, paths, strict=True)]
+    return _checks.refuse(u, [
+        (flat_i & jnp.all(ui == u0_i),
+         f"the render does not depend on {path!r} at its initial value (its derivative "
+         f"is exactly 0 at every compared pixel), and the fit left it there. Something "
+         f"switches it off: an importance exponent, offset or darkening whose weight "
+         f"(importance.silhouette, .lighting or .unocclusion) is 0, any importance under "
+         f"a global weight of 0, an effect the scene's opacity never reaches, an initial "
+         f"value on its bound, or pixels and channels it changes all weighted 0. Turn "
+         f"that on or leave {path!r} out.")
+        for ui, u0_i, flat_i, path in zip(u, u0, flat, paths, strict=True)], _WHERE)
 
 
 @eqx.filter_jit

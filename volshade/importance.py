@@ -666,7 +666,8 @@ class Focus(eqx.Module):
         center = _checks.refuse(self.center, [self._center_problem()], "volshade.Focus")
         # in pixels in float32 at least: bfloat16 keeps 8 significant bits, so a
         # centre past 128 px would be rounded to half a pixel or more
-        center, radius = (_checks.at_least_float32(jnp.asarray(x)) for x in (center, self.radius))
+        center, radius = (_checks.as_working_float(x, name, "volshade.Focus")
+                          for x, name in ((center, "center"), (self.radius, "radius")))
         center = center * jnp.asarray([h, w], center.dtype) - 0.5
         return focus_weights(image_shape, center=center, radius=radius * h, kind=self.kind,
                              inside=self.inside, outside=self.outside, dtype=dtype)

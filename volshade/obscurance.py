@@ -636,7 +636,7 @@ def obscurance(
                       columns_last=_columns_last())
     if callable(rho):
         # the named rho functions are finite on (0, d_max]; a user's may not be
-        out = _checks.refuse(out, [(~jnp.all(jnp.isfinite(out)),
+        out = _checks.refuse(out, [(_checks.holds_non_finite(out),
                                     "`rho(d, d_max)` returned NaN or inf for some distance "
                                     "0 < d <= d_max; make it finite there.")], where)
     return out

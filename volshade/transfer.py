@@ -210,8 +210,10 @@ class TransferFunction(eqx.Module):
         Raises:
             ValueError: NaN or inf in ``volume`` (interpolation would clamp an
                 infinite value to the last control point's opacity, silently), or
-                values outside ``[points[0], points[-1]]`` (the same clamp); a
-                negative or non-finite ``step``.
+                values outside ``[points[0], points[-1]]`` (the same clamp); control
+                points closer than ``jnp.interp`` resolves in the volume's dtype
+                (1.4e-14 in float32); a negative or non-finite ``step``, or one that
+                does not broadcast to the volume.
             TypeError: ``volume`` not real numbers (complex, strings).
         """
         tf, volume = self._checked(volume, f"{_WHERE}.opacity")
