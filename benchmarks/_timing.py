@@ -1,6 +1,8 @@
 """Timing helpers shared by the benchmarks: warm-up, compile time apart, medians."""
 
+import json
 import statistics
+import sys
 import time
 from collections.abc import Callable
 
@@ -34,3 +36,10 @@ def fit_exponent(sizes: list[float], times: list[float]) -> float:
 
     slope, _ = np.polyfit(np.log(sizes), np.log(times), 1)
     return float(slope)
+
+
+def report(rows: list[dict], row: dict) -> None:
+    """Append ``row`` to ``rows`` and print it to stderr at once: a GPU run cut off by its
+    time limit still shows what it measured."""
+    rows.append(row)
+    print(json.dumps(row, default=float), file=sys.stderr, flush=True)

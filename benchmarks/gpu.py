@@ -20,6 +20,8 @@ references). Cases:
 * rendering: a 512^2 image over the 256^3 shells phantom.
 """
 
+import json
+import sys
 import time
 
 import equinox as eqx
@@ -109,21 +111,46 @@ def run(quick: bool) -> dict:
 
 
 def measure(sizes: dict) -> dict:
-    """Every case at ``sizes`` (an entry of :data:`SIZES`), on the default device."""
-    repeats = sizes["repeats"]
-    rows = _agreement()
-    ratios = {}
+    """Every case at ``sizes`` (an entry of :data:`SIZES`), on the default device.
+
+    Each section's rows are printed as they come (device time is short: a run cut off
+    by its time limit still reports what it measured), and a section that raises is
+    recorded as an ``error`` row and the next one runs."""
+    rows, ratios = [], {}
     t0 = time.perf_counter()
+    for section in (_agreement_section, _lao_section, _obscurance_section, _bricks_section,
+                    _composition_section, _render_section):
+        start = len(rows)
+        try:
+            section(sizes, rows, ratios)
+        except Exception as err:  # noqa: BLE001 - one failing section must not lose the rest
+            rows.append({"case": section.__name__, "error": repr(err)[:500]})
+        for row in rows[start:]:
+            if section is not _lao_section or "error" in row:  # run_gpu reports its own
+                print(json.dumps(row, default=float), file=sys.stderr, flush=True)
+        print(json.dumps({"ratios so far": ratios}, default=float), file=sys.stderr,
+              flush=True)
+    rows.append({"case": "(all cases)", "elapsed_s": time.perf_counter() - t0})
+    return {"title": "GPU goals and GPU/CPU agreement", "rows": rows, "ratios": ratios}
 
-    # LAO first: the largest case, and the device's peak memory counts from process start,
+
+def _agreement_section(sizes: dict, rows: list, ratios: dict) -> None:
+    rows += _agreement()
+
+
+def _lao_section(sizes: dict, rows: list, ratios: dict) -> None:
+    # LAO first of the large cases: the device's peak memory counts from process start,
     # so its peak ratios are the LAO's own only before the other large cases run
-    from .lao import run_gpu, sparse_ball
+    from .lao import run_gpu
 
-    lao_result = run_gpu(**sizes["lao"], repeats=repeats)
+    lao_result = run_gpu(**sizes["lao"], repeats=sizes["repeats"])
     rows += lao_result["rows"]
     ratios.update({f"lao {k}": v for k, v in lao_result["ratios"].items()})
 
-    # Obscurance: 256^3, 162 directions, d_max 64.
+
+def _obscurance_section(sizes: dict, rows: list, ratios: dict) -> None:
+    """256^3, 162 directions, d_max 64."""
+    repeats = sizes["repeats"]
     n = sizes["obscurance"]
     density = 0.5 * vs.data.phantom("shells", shape=n)
     dirs162 = icosphere(2)  # concrete: the directions set the sweep, close over them
@@ -147,18 +174,26 @@ def measure(sizes: dict) -> dict:
     ratios["obscurance columns last vs first: max |difference|"] = float(
         jnp.max(jnp.abs(out[True] - out[False])))
 
-    # LAO bricks on a sparse volume (a ball; 1/8 of the bricks within reach): bricked / plain.
+
+def _bricks_section(sizes: dict, rows: list, ratios: dict) -> None:
+    """LAO bricks on a sparse volume (a ball; 1/8 of the bricks within reach): bricked /
+    plain."""
+    from .lao import sparse_ball
+
     n, brick = sizes["ball"]
     ball = sparse_ball(n)
     med = {}
     for b in (None, brick):
         fn = jax.jit(lambda a, b=b: lao(a, directions=16, radius=8.0, samples=16, brick_size=b))
-        med[b] = time_fn(fn, ball, repeats=repeats)["median_s"]
+        med[b] = time_fn(fn, ball, repeats=sizes["repeats"])["median_s"]
         rows.append({"case": f"lao sparse ball {n}^3 L16 M16 R8, bricks {b}",
                      "median_s": med[b]})
     ratios["lao bricked speed-up on the sparse ball"] = med[None] / med[brick]
 
-    # Composition: 512^2 rays x 512 samples.
+
+def _composition_section(sizes: dict, rows: list, ratios: dict) -> None:
+    """512^2 rays x 512 samples."""
+    repeats = sizes["repeats"]
     side, samples = sizes["composite"]
     key = jax.random.split(jax.random.PRNGKey(0), 3)
     alphas = jax.random.uniform(key[0], (side * side, samples), jnp.float32, 0.0, 0.05)
@@ -189,17 +224,16 @@ def measure(sizes: dict) -> dict:
         ratios[f"composite importance/standard fwd+grad (unroll {u})"] = (
             med[("importance", "grad", u)] / med[("standard", "grad", u)])
 
-    # Rendering: 512^2 over 256^3 (quick: 256^2 over 128^3).
+
+def _render_section(sizes: dict, rows: list, ratios: dict) -> None:
+    """512^2 over 256^3 (quick: 256^2 over 128^3)."""
     n, px = sizes["render"]
     vol = vs.data.phantom("shells", shape=n)
     cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(px, px))
     for shading in ("none", "phong"):
         scene = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), shading=shading,
                          step=1.0)
-        t = time_fn(eqx.filter_jit(vs.render), scene, cam, repeats=repeats)
+        t = time_fn(eqx.filter_jit(vs.render), scene, cam, repeats=sizes["repeats"])
         work = px * px * n_samples(vol.shape, (1, 1, 1), 1.0)
         rows.append({"case": f"render {px}^2 over {n}^3, shading={shading}",
                      "median_s": t["median_s"], "Gsamples_per_s": work / t["median_s"] / 1e9})
-    rows.append({"case": "(all cases after the agreement checks)",
-                 "elapsed_s": time.perf_counter() - t0})
-    return {"title": "GPU goals and GPU/CPU agreement", "rows": rows, "ratios": ratios}

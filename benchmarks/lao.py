@@ -29,7 +29,7 @@ from jax.scipy.ndimage import map_coordinates
 import volshade.directions as vdirs
 from volshade.lao import _active_bricks, lao
 
-from ._timing import fit_exponent, time_fn
+from ._timing import fit_exponent, report, time_fn
 
 
 def _shells(n: int) -> jax.Array:
@@ -270,19 +270,20 @@ def run_gpu(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: float = 5
     fwd = _fast(dirs, samples, max_radius=radius)
     t_f = time_fn(fwd, alpha, r, repeats=repeats)
     peak = _peak_bytes()
+    rows: list[dict] = []
+    report(rows, {"case": f"forward {n}^3 L{n_dirs} M{samples} R{radius}",
+                  "median_s": t_f["median_s"], "first_call_s": t_f["first_call_s"],
+                  **_rates(alpha.size, n_dirs, samples, t_f["median_s"])})
     loss = lambda a, rr: jnp.sum(lao(a, directions=dirs, radius=rr, offset=1.0,  # noqa: E731
                                      samples=samples, max_radius=radius))
     both = jax.jit(jax.value_and_grad(loss, (0, 1)))
     t_b = time_fn(both, alpha, r, repeats=repeats)
     peak_grad = _peak_bytes()
+    report(rows, {"case": "forward+grad(alpha, radius)", "median_s": t_b["median_s"],
+                  "first_call_s": t_b["first_call_s"]})
     mem_f = fwd.lower(alpha, r).compile().memory_analysis()
     mem_b = both.lower(alpha, r).compile().memory_analysis()
     vol = alpha.size * 4
-    rows = [{"case": f"forward {n}^3 L{n_dirs} M{samples} R{radius}", "median_s": t_f["median_s"],
-             "first_call_s": t_f["first_call_s"],
-             **_rates(alpha.size, n_dirs, samples, t_f["median_s"])},
-            {"case": "forward+grad(alpha, radius)", "median_s": t_b["median_s"],
-             "first_call_s": t_b["first_call_s"]}]
     ratios = {"forward_plus_grad_over_forward": t_b["median_s"] / t_f["median_s"],
               "peak_bytes_before_forward_over_volume": peak_before / vol,
               "peak_bytes_after_forward_over_volume": peak / vol,
@@ -296,10 +297,10 @@ def run_gpu(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: float = 5
     naive = jax.jit(lambda a, rr: gather_lao(a, d16, rr, jnp.float32(1.0), 16))
     t1 = time_fn(fast, small, r16, repeats=repeats)
     t2 = time_fn(naive, small, r16, repeats=repeats)
-    rows += [{"case": f"volshade {n_gather}^3 L16 M16", "median_s": t1["median_s"],
-              **_rates(small.size, 16, 16, t1["median_s"])},
-             {"case": f"gather {n_gather}^3 L16 M16", "median_s": t2["median_s"],
-              **_rates(small.size, 16, 16, t2["median_s"])}]
+    report(rows, {"case": f"volshade {n_gather}^3 L16 M16", "median_s": t1["median_s"],
+                  **_rates(small.size, 16, 16, t1["median_s"])})
+    report(rows, {"case": f"gather {n_gather}^3 L16 M16", "median_s": t2["median_s"],
+                  **_rates(small.size, 16, 16, t2["median_s"])})
     ratios[f"speedup_vs_gather_{n_gather}"] = t2["median_s"] / t1["median_s"]
     ratios[f"max_abs_diff_vs_gather_{n_gather}"] = float(
         jnp.max(jnp.abs(fast(small, r16) - naive(small, r16))))
@@ -357,22 +358,24 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
                                                    samples=samples, correction=False,
                                                    launch=launch)
 
-    rows = _pallas_agreement()
+    rows: list[dict] = []
+    for row in _pallas_agreement():
+        report(rows, row)
     xla = _fast(dirs, samples, max_radius=radius)
     t_xla = time_fn(xla, alpha, r, repeats=repeats)
-    rows += [{"case": f"xla forward {n}^3 L{n_dirs} M{samples} R{radius}",
-             "median_s": t_xla["median_s"],
-             **_rates(alpha.size, n_dirs, samples, t_xla["median_s"])}]
+    report(rows, {"case": f"xla forward {n}^3 L{n_dirs} M{samples} R{radius}",
+                  "median_s": t_xla["median_s"],
+                  **_rates(alpha.size, n_dirs, samples, t_xla["median_s"])})
     best, timings = None, {}
     for launch in pallas.LAUNCHES:
         fn = jax.jit(occlusion(launch))
         try:
             t = time_fn(fn, alpha, r, repeats=repeats)
         except Exception as err:  # noqa: BLE001 - a launch Triton rejects is reported, not fatal
-            rows.append({"case": f"pallas forward {launch}", "error": repr(err)[:300]})
+            report(rows, {"case": f"pallas forward {launch}", "error": repr(err)[:300]})
             continue
         timings[launch] = t["median_s"]
-        rows.append({"case": f"pallas forward {launch}",
+        report(rows, {"case": f"pallas forward {launch}",
                      "median_s": t["median_s"], "compile_s": t["first_call_s"] - t["median_s"],
                      **_rates(alpha.size, n_dirs, samples, t["median_s"])})
         if best is None or t["median_s"] < timings[best]:
@@ -386,7 +389,7 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     # fresh medians of it and of the XLA march
     t_best = time_fn(forward, alpha, r, repeats=repeats)["median_s"]
     t_xla_again = time_fn(xla, alpha, r, repeats=repeats)["median_s"]
-    rows.append({"case": f"pallas forward {best}, the fastest, timed again",
+    report(rows, {"case": f"pallas forward {best}, the fastest, timed again",
                  "median_s": t_best, **_rates(alpha.size, n_dirs, samples, t_best)})
     ratios["pallas_forward_speedup_vs_xla"] = t_xla_again / t_best
     ratios["pallas_max_abs_diff_vs_xla"] = float(jnp.max(jnp.abs(ao - xla(alpha, r))))
@@ -404,9 +407,9 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
         try:
             t_b = time_fn(fn, alpha, r, repeats=repeats)
         except Exception as err:  # noqa: BLE001 - as above
-            rows.append({"case": f"pallas forward+grad {launch}", "error": repr(err)[:300]})
+            report(rows, {"case": f"pallas forward+grad {launch}", "error": repr(err)[:300]})
             continue
-        rows.append({"case": f"pallas forward+grad(alpha, radius) {launch}",
+        report(rows, {"case": f"pallas forward+grad(alpha, radius) {launch}",
                      "median_s": t_b["median_s"],
                      "compile_s": t_b["first_call_s"] - t_b["median_s"]})
         ratios[f"pallas_forward_plus_grad_over_forward {launch}"] = (
@@ -423,6 +426,7 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     vol = alpha.size * 4
     ratios["pallas_grad_temp_over_volume"] = (
         both.lower(alpha, r).compile().memory_analysis().temp_size_in_bytes / vol)
+    report(rows, {"case": "(ratios so far)", **ratios})
     rows += _pallas_bricks(n // 2, ratios, repeats)
     return {"title": "LAO Pallas on GPU", "rows": rows, "ratios": ratios,
             "device": str(jax.devices()[0])}
@@ -442,10 +446,10 @@ def _pallas_bricks(n: int, ratios: dict, repeats: int) -> list[dict]:
         try:
             med[(implementation, b)] = time_fn(fn, ball, repeats=repeats)["median_s"]
         except Exception as err:  # noqa: BLE001 - reported, as for the launches
-            out.append({"case": f"sparse ball {implementation} bricks {b}",
+            report(out, {"case": f"sparse ball {implementation} bricks {b}",
                         "error": repr(err)[:300]})
             continue
-        out.append({"case": f"sparse ball {n}^3 L16 M16 R8, {implementation}, bricks {b}",
+        report(out, {"case": f"sparse ball {n}^3 L16 M16 R8, {implementation}, bricks {b}",
                     "median_s": med[(implementation, b)]})
     if ("pallas", None) in med and ("pallas", brick) in med:
         ratios["pallas_bricked_speedup_sparse_ball"] = (med[("pallas", None)]
