@@ -34,14 +34,7 @@ from volshade.composition import composite
 from volshade.directions import icosphere
 from volshade.importance import Focus, Importance
 from volshade.lao import LocalAmbientOcclusion, lao
-from volshade.obscurance import (
-    RHO_FUNCTIONS,
-    _direction_array,
-    _obscurance,
-    _Static,
-    _static_dirs,
-    obscurance,
-)
+from volshade.obscurance import obscurance
 from volshade.render import n_samples
 from volshade.saliency import saliency
 
@@ -158,21 +151,6 @@ def _obscurance_section(sizes: dict, rows: list, ratios: dict) -> None:
     t = time_fn(obs, density, jnp.float32(64.0), repeats=repeats)
     rows.append({"case": f"obscurance {n}^3 162 dirs d_max 64", "median_s": t["median_s"],
                  "compile_s": t["first_call_s"] - t["median_s"]})
-    # the search's column layout (volshade.obscurance._columns_last picks the last axis on a
-    # GPU by reasoning, not measurement): both, same run, same result
-    static = _static_dirs(_direction_array(dirs162, "directions", "gpu benchmark"))
-    sqrt = _Static(RHO_FUNCTIONS["sqrt"], RHO_FUNCTIONS["sqrt"])
-    med, out = {}, {}
-    for last in (False, True):
-        fn = jax.jit(lambda d, dm, last=last: _obscurance(
-            d, dm, None, None, None, dirs=static, rho_rest=sqrt, columns_last=last))
-        med[last] = time_fn(fn, density, jnp.float32(64.0), repeats=repeats)["median_s"]
-        out[last] = fn(density, jnp.float32(64.0))
-        rows.append({"case": f"obscurance {n}^3 162 dirs, columns along the "
-                             f"{'last' if last else 'first'} axis", "median_s": med[last]})
-    ratios["obscurance columns last / first (time)"] = med[True] / med[False]
-    ratios["obscurance columns last vs first: max |difference|"] = float(
-        jnp.max(jnp.abs(out[True] - out[False])))
 
 
 def _bricks_section(sizes: dict, rows: list, ratios: dict) -> None:

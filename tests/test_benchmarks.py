@@ -38,7 +38,6 @@ def test_gpu_benchmark_runs_every_case():
     for row in agreement:
         assert row["max_abs_gpu_minus_cpu"] == 0.0, row
     ratios = result["ratios"]
-    assert ratios["obscurance columns last vs first: max |difference|"] == 0.0
     assert ratios["lao max_abs_diff_vs_gather_12"] < 1e-6
     assert all(math.isfinite(v) for k, v in ratios.items() if "peak_bytes" not in k), ratios
 

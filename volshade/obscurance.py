@@ -295,63 +295,43 @@ def _line_ends(off_b: Array, off_c: Array, n_b: int, n_c: int) -> Array:
                        _segment_ends(off_c, n_c)[:, None, :])
 
 
-def _shift_up(y: Array, s: int, fill: Array, axis: int = 0) -> Array:
-    """``y[i + s]`` along ``axis``, ``fill`` past the end."""
-    n = y.shape[axis]
+def _shift_up(y: Array, s: int, fill: Array) -> Array:
+    """``y[i + s]`` along the first axis, ``fill`` past the end."""
+    n = y.shape[0]
     if s >= n:
         return jnp.full_like(y, fill)
-    tail = list(y.shape)
-    tail[axis] = s
-    return jnp.concatenate([jax.lax.slice_in_dim(y, s, n, axis=axis),
-                            jnp.full(tail, fill, y.dtype)], axis=axis)
+    return jnp.concatenate([y[s:], jnp.full((s, *y.shape[1:]), fill, y.dtype)])
 
 
-def _first_greater_steps(x: Array, axis: int = 0) -> Array:
-    """Per position ``i`` of each column (along ``axis``): the smallest ``t >= 1`` with
-    ``x[i + t] > x[i]``, or 0 when none exists.
+def _first_greater_steps(x: Array) -> Array:
+    """Per position ``i`` of each column (along the first axis): the smallest ``t >= 1``
+    with ``x[i + t] > x[i]``, or 0 when none exists.
 
     Sparse table $M_k[i] = \\max x[i+1 .. i+2^k]$ built by doubling, then binary
     lifting from the largest level down: ``pos`` grows by $2^k$ while the next
     $2^k$ values are all ``<= x[i]``. $O(n \\log n)$ for a column of length $n$,
     whatever the distance of the answer.
     """
-    n = x.shape[axis]
+    n = x.shape[0]
     n_levels = max(0, math.ceil(math.log2(n))) if n > 1 else 0
     neg = jnp.asarray(-jnp.inf, x.dtype)
     levels = []
-    m = _shift_up(x, 1, neg, axis)
+    m = _shift_up(x, 1, neg)
     for k in range(n_levels):
         levels.append(m)
         if k + 1 < n_levels:
-            m = jnp.maximum(m, _shift_up(m, 2**k, neg, axis))
-    iota = jax.lax.broadcasted_iota(jnp.int32, x.shape, axis % x.ndim)
+            m = jnp.maximum(m, _shift_up(m, 2**k, neg))
+    iota = jax.lax.broadcasted_iota(jnp.int32, x.shape, 0)
     pos = jnp.zeros(x.shape, jnp.int32)
     for k in reversed(range(n_levels)):
         idx = jnp.minimum(iota + pos, n - 1)
-        ahead = jnp.take_along_axis(levels[k], idx, axis=axis)
+        ahead = jnp.take_along_axis(levels[k], idx, axis=0)
         pos = jnp.where(ahead <= x, pos + 2**k, pos)
     target = iota + pos + 1
     return jnp.where(target < n, pos + 1, 0)
 
 
-def _columns_last() -> bool:
-    """Whether the search runs on columns laid out along the last (contiguous) axis.
-
-    Binary lifting reads each level at a data-dependent position of the voxel's own
-    column. With columns along the first axis, neighbouring voxels (threads) read
-    from unrelated rows; along the last axis they read within one contiguous column,
-    which a GPU's memory transactions favour, at the price of two transposes per
-    direction. On a CPU the transposes cost more than they save (the whole obscurance
-    measured 1.6x slower at 64^3 and 1.7x at 128^3, 42 directions), so the first axis is
-    kept there; on a GPU the last axis is the reasoned choice, not yet a measured one
-    (``python -m benchmarks.run gpu`` times both). The choice follows the default
-    backend, not the device of the data: arrays placed on the CPU of a GPU machine
-    get the GPU layout (the same result, more slowly).
-    """
-    return jax.default_backend() != "cpu"
-
-
-def _frame_steps(tiled: Array, off_b: Array, off_c: Array, columns_last: bool) -> Array:
+def _frame_steps(tiled: Array, off_b: Array, off_c: Array) -> Array:
     """Steps to the occluder of every frame voxel along one direction (0: none).
 
     ``tiled`` is the frame tiled by :func:`_tile`. The first greater
@@ -359,11 +339,11 @@ def _frame_steps(tiled: Array, off_b: Array, off_c: Array, columns_last: bool) -
     the voxel's own line (the column wrapped to another line), there is no occluder.
     """
     n_b, n_c = tiled.shape[1] // 2, tiled.shape[2] // 2
-    columns = _wrap(tiled, off_b, off_c)
-    if columns_last:
-        steps = jnp.moveaxis(_first_greater_steps(jnp.moveaxis(columns, 0, -1), -1), -1, 0)
-    else:
-        steps = _first_greater_steps(columns)
+    # the columns run along the first axis: laid out along the contiguous last axis
+    # instead (two transposes per direction), the whole obscurance measured 1.6-1.7x
+    # slower on a CPU (64^3, 128^3, 42 directions) and 1.23x slower on an H200 (256^3,
+    # 162 directions: 0.190 s against 0.154 s)
+    steps = _first_greater_steps(_wrap(tiled, off_b, off_c))
     target = jax.lax.broadcasted_iota(jnp.int32, steps.shape, 0) + steps
     on_line = target < _line_ends(off_b, off_c, n_b, n_c)
     return _unwrap(jnp.where(on_line, steps, 0), off_b, off_c)
@@ -490,7 +470,7 @@ def occluder_distances(
     where = "volshade.obscurance.occluder_distances"
     density = jax.lax.stop_gradient(_checks.volume(density, "density", where))
     dirs = _direction_array(directions, "directions", where)
-    return _occluder_distances(density, _static_dirs(dirs), columns_last=_columns_last())
+    return _occluder_distances(density, _static_dirs(dirs))
 
 
 def _static_dirs(dirs: np.ndarray) -> tuple[tuple[float, float, float], ...]:
@@ -498,8 +478,8 @@ def _static_dirs(dirs: np.ndarray) -> tuple[tuple[float, float, float], ...]:
     return tuple(tuple(float(x) for x in row) for row in dirs)
 
 
-@functools.partial(jax.jit, static_argnames=("dirs", "columns_last"))
-def _occluder_distances(density: Array, dirs: tuple, *, columns_last: bool) -> Array:
+@functools.partial(jax.jit, static_argnames=("dirs",))
+def _occluder_distances(density: Array, dirs: tuple) -> Array:
     dirs = np.asarray(dirs)
     # distances in float32 at least, as :func:`obscurance` measures them: a half-precision
     # distance (19.05 as 19.125 in bfloat16) would disagree with it at some d_max
@@ -510,7 +490,7 @@ def _occluder_distances(density: Array, dirs: tuple, *, columns_last: bool) -> A
 
         def one(tables, tiled=tiled, g=g):
             off_b, off_c, step = tables
-            steps = _frame_steps(tiled, off_b, off_c, columns_last)
+            steps = _frame_steps(tiled, off_b, off_c)
             dist = jnp.where(steps > 0, steps.astype(dtype) * step, jnp.inf)
             return _from_frame(dist, g.axis, g.sign)
 
@@ -632,8 +612,7 @@ def obscurance(
     if not jax.tree_util.tree_leaves(rho_arrays):
         rho_rest = rho_fn  # as given: partition would rebuild a pytree rho at every call
     out = _obscurance(density, d_max, colors, ambient if bleeding else None, rho_arrays,
-                      dirs=_static_dirs(dirs), rho_rest=_Static(rho_rest, rho_fn),
-                      columns_last=_columns_last())
+                      dirs=_static_dirs(dirs), rho_rest=_Static(rho_rest, rho_fn))
     if callable(rho):
         # the named rho functions are finite on (0, d_max]; a user's may not be
         out = _checks.refuse(out, [(_checks.holds_non_finite(out),
@@ -663,10 +642,9 @@ class _Static:
         return self.value == other.value if self._key[0] else self.owner is other.owner
 
 
-@functools.partial(jax.jit, static_argnames=("dirs", "rho_rest", "columns_last"))
+@functools.partial(jax.jit, static_argnames=("dirs", "rho_rest"))
 def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Array | None,
-                rho_arrays: Any, *, dirs: tuple, rho_rest: _Static,
-                columns_last: bool) -> Array:
+                rho_arrays: Any, *, dirs: tuple, rho_rest: _Static) -> Array:
     rho_fn = eqx.combine(rho_arrays, rho_rest.value)
     dirs = np.asarray(dirs)
     # the search compares the density as given; distances, rho and the sum over the
@@ -687,7 +665,7 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
 
         def body(acc, tables, tiled=tiled, frame_colors=frame_colors):
             off_b, off_c, step = tables
-            steps = _frame_steps(tiled, off_b, off_c, columns_last)
+            steps = _frame_steps(tiled, off_b, off_c)
             dist = steps.astype(dtype) * step
             occluded = (steps > 0) & (dist <= d_max)
             safe_dist = jnp.where(occluded, dist, d_max)
