@@ -810,7 +810,7 @@ def test_unroll_changes_no_value_or_gradient_and_defaults_by_backend(monkeypatch
         return compiled(*args, unroll=unroll)
 
     monkeypatch.setattr(composition, "_composite", spy)
-    composite(c, a)
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    composite(c, a)
+    for backend in ("cpu", "gpu"):
+        monkeypatch.setattr(jax, "default_backend", lambda backend=backend: backend)
+        composite(c, a)
     assert seen == [1, 8]
