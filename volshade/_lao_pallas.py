@@ -100,6 +100,17 @@ class Launch(NamedTuple):
     registers, the cotangent kernel runs on tiles of half the depth of
     ``cotangent_tile`` (254 registers and no spill, against 1276 bytes spilled at the
     full depth). Timings need a GPU: ``python -m benchmarks.run lao_pallas``.
+
+    Timed on an H200 (JAX 0.11.2, 2026-12-04; $512^3$, $L = 54$, $M = 50$, $R = 50$,
+    no opacity correction; the benchmark's sweep and an ad hoc one), forward: the
+    default 0.61 s (0.59 T samples/s), tile ``(8, 4, 32)`` the same, ``(2, 16, 32)``
+    0.68 s, ``(2, 8, 32)`` 0.72 s, 8 warps 0.74 s, ``(4, 8, 64)`` 0.77 s, 2 warps
+    0.82 s, ``(4, 16, 32)`` 0.82 s, ``(8, 8, 32)`` 0.95 s, ``vector = 2`` (2 warps)
+    1.02 s, ``vector = 1`` 1.11 s. Forward and gradient: the default 5.5 s,
+    ``cotangent_tile`` ``(2, 8, 64)`` 5.0 s, ``(1, 8, 32)`` and ``(2, 4, 32)`` 5.4 s,
+    8 warps 5.7 s; ``(2, 8, 64)`` is not the default because with opacity correction
+    its halved tile holds as many voxels per thread as the full-depth default tile,
+    which spills, and that case was not timed.
     """
 
     tile: tuple[int, int, int] = (4, 8, 32)
