@@ -43,3 +43,8 @@ def report(rows: list[dict], row: dict) -> None:
     time limit still shows what it measured."""
     rows.append(row)
     print(json.dumps(row, default=float), file=sys.stderr, flush=True)
+
+
+def report_ratios(ratios: dict) -> None:
+    """Print the ratios measured so far to stderr at once (as :func:`report` a row)."""
+    print(json.dumps({"ratios so far": ratios}, default=float), file=sys.stderr, flush=True)

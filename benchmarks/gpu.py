@@ -20,8 +20,6 @@ references). Cases:
 * rendering: a 512^2 image over the 256^3 shells phantom.
 """
 
-import json
-import sys
 import time
 
 import equinox as eqx
@@ -38,7 +36,7 @@ from volshade.obscurance import obscurance
 from volshade.render import n_samples
 from volshade.saliency import saliency
 
-from ._timing import time_fn
+from ._timing import report, report_ratios, time_fn
 
 
 def _agreement() -> list[dict]:
@@ -77,8 +75,8 @@ def _agreement() -> list[dict]:
         with jax.default_device(jax.devices("cpu")[0]):
             ref = np.asarray(fn())
         got = np.asarray(fn())
-        rows.append({"case": f"agree: {name}", "median_s": float("nan"),
-                     "max_abs_gpu_minus_cpu": float(np.max(np.abs(got - ref)))})
+        report(rows, {"case": f"agree: {name}", "median_s": float("nan"),
+                      "max_abs_gpu_minus_cpu": float(np.max(np.abs(got - ref)))})
     return rows
 
 
@@ -113,17 +111,12 @@ def measure(sizes: dict) -> dict:
     t0 = time.perf_counter()
     for section in (_agreement_section, _lao_section, _obscurance_section, _bricks_section,
                     _composition_section, _render_section):
-        start = len(rows)
         try:
             section(sizes, rows, ratios)
         except Exception as err:  # noqa: BLE001 - one failing section must not lose the rest
-            rows.append({"case": section.__name__, "error": repr(err)[:500]})
-        for row in rows[start:]:
-            if section is not _lao_section or "error" in row:  # run_gpu reports its own
-                print(json.dumps(row, default=float), file=sys.stderr, flush=True)
-        print(json.dumps({"ratios so far": ratios}, default=float), file=sys.stderr,
-              flush=True)
-    rows.append({"case": "(all cases)", "elapsed_s": time.perf_counter() - t0})
+            report(rows, {"case": section.__name__, "error": repr(err)[:500]})
+        report_ratios(ratios)
+    report(rows, {"case": "(all cases)", "elapsed_s": time.perf_counter() - t0})
     return {"title": "GPU goals and GPU/CPU agreement", "rows": rows, "ratios": ratios}
 
 
@@ -149,8 +142,8 @@ def _obscurance_section(sizes: dict, rows: list, ratios: dict) -> None:
     dirs162 = icosphere(2)  # concrete: the directions set the sweep, close over them
     obs = jax.jit(lambda d, dm: obscurance(d, directions=dirs162, d_max=dm))
     t = time_fn(obs, density, jnp.float32(64.0), repeats=repeats)
-    rows.append({"case": f"obscurance {n}^3 162 dirs d_max 64", "median_s": t["median_s"],
-                 "compile_s": t["first_call_s"] - t["median_s"]})
+    report(rows, {"case": f"obscurance {n}^3 162 dirs d_max 64", "median_s": t["median_s"],
+                  "compile_s": t["first_call_s"] - t["median_s"]})
 
 
 def _bricks_section(sizes: dict, rows: list, ratios: dict) -> None:
@@ -164,8 +157,8 @@ def _bricks_section(sizes: dict, rows: list, ratios: dict) -> None:
     for b in (None, brick):
         fn = jax.jit(lambda a, b=b: lao(a, directions=16, radius=8.0, samples=16, brick_size=b))
         med[b] = time_fn(fn, ball, repeats=sizes["repeats"])["median_s"]
-        rows.append({"case": f"lao sparse ball {n}^3 L16 M16 R8, bricks {b}",
-                     "median_s": med[b]})
+        report(rows, {"case": f"lao sparse ball {n}^3 L16 M16 R8, bricks {b}",
+                      "median_s": med[b]})
     ratios["lao bricked speed-up on the sparse ball"] = med[None] / med[brick]
 
 
@@ -187,15 +180,15 @@ def _composition_section(sizes: dict, rows: list, ratios: dict) -> None:
 
             t = time_fn(jax.jit(fn), *args, repeats=repeats + 2)
             med[(name, "fwd", unroll)] = t["median_s"]
-            rows.append({"case": f"composite {name} {side}^2x{samples} unroll {unroll}",
-                         "median_s": t["median_s"],
-                         "Gsamples_per_s": side * side * samples / t["median_s"] / 1e9})
+            report(rows, {"case": f"composite {name} {side}^2x{samples} unroll {unroll}",
+                          "median_s": t["median_s"],
+                          "Gsamples_per_s": side * side * samples / t["median_s"] / 1e9})
             grad = jax.jit(jax.grad(lambda *xs, fn=fn: jnp.sum(fn(*xs)),
                                     argnums=tuple(range(len(args)))))
             t = time_fn(grad, *args, repeats=repeats)
             med[(name, "grad", unroll)] = t["median_s"]
-            rows.append({"case": f"composite {name} fwd+grad unroll {unroll}",
-                         "median_s": t["median_s"]})
+            report(rows, {"case": f"composite {name} fwd+grad unroll {unroll}",
+                          "median_s": t["median_s"]})
     for u in (1, 8):
         ratios[f"composite importance/standard forward (unroll {u})"] = (
             med[("importance", "fwd", u)] / med[("standard", "fwd", u)])
@@ -213,5 +206,5 @@ def _render_section(sizes: dict, rows: list, ratios: dict) -> None:
                          step=1.0)
         t = time_fn(eqx.filter_jit(vs.render), scene, cam, repeats=sizes["repeats"])
         work = px * px * n_samples(vol.shape, (1, 1, 1), 1.0)
-        rows.append({"case": f"render {px}^2 over {n}^3, shading={shading}",
-                     "median_s": t["median_s"], "Gsamples_per_s": work / t["median_s"] / 1e9})
+        report(rows, {"case": f"render {px}^2 over {n}^3, shading={shading}",
+                      "median_s": t["median_s"], "Gsamples_per_s": work / t["median_s"] / 1e9})

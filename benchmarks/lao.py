@@ -29,7 +29,7 @@ from jax.scipy.ndimage import map_coordinates
 import volshade.directions as vdirs
 from volshade.lao import _active_bricks, lao
 
-from ._timing import fit_exponent, report, time_fn
+from ._timing import fit_exponent, report, report_ratios, time_fn
 
 
 def _shells(n: int) -> jax.Array:
@@ -328,9 +328,9 @@ def _pallas_agreement() -> list[dict]:
         got = np.asarray(fn(alpha, "pallas"))
         with jax.default_device(jax.devices("cpu")[0]):
             want = np.asarray(fn(alpha, "xla"))
-        rows.append({"case": f"agree: pallas here vs xla on the CPU, 32^3 L16 M8, {name}",
-                     "max_abs_diff": float(np.max(np.abs(got - want))),
-                     "max_abs": float(np.max(np.abs(want)))})
+        report(rows, {"case": f"agree: pallas here vs xla on the CPU, 32^3 L16 M8, {name}",
+                      "max_abs_diff": float(np.max(np.abs(got - want))),
+                      "max_abs": float(np.max(np.abs(want)))})
     return rows
 
 
@@ -358,9 +358,7 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
                                                    samples=samples, correction=False,
                                                    launch=launch)
 
-    rows: list[dict] = []
-    for row in _pallas_agreement():
-        report(rows, row)
+    rows = _pallas_agreement()
     xla = _fast(dirs, samples, max_radius=radius)
     t_xla = time_fn(xla, alpha, r, repeats=repeats)
     report(rows, {"case": f"xla forward {n}^3 L{n_dirs} M{samples} R{radius}",
@@ -376,8 +374,8 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
             continue
         timings[launch] = t["median_s"]
         report(rows, {"case": f"pallas forward {launch}",
-                     "median_s": t["median_s"], "compile_s": t["first_call_s"] - t["median_s"],
-                     **_rates(alpha.size, n_dirs, samples, t["median_s"])})
+                      "median_s": t["median_s"], "compile_s": t["first_call_s"] - t["median_s"],
+                      **_rates(alpha.size, n_dirs, samples, t["median_s"])})
         if best is None or t["median_s"] < timings[best]:
             best = launch
     ratios = {}
@@ -390,7 +388,7 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     t_best = time_fn(forward, alpha, r, repeats=repeats)["median_s"]
     t_xla_again = time_fn(xla, alpha, r, repeats=repeats)["median_s"]
     report(rows, {"case": f"pallas forward {best}, the fastest, timed again",
-                 "median_s": t_best, **_rates(alpha.size, n_dirs, samples, t_best)})
+                  "median_s": t_best, **_rates(alpha.size, n_dirs, samples, t_best)})
     ratios["pallas_forward_speedup_vs_xla"] = t_xla_again / t_best
     ratios["pallas_max_abs_diff_vs_xla"] = float(jnp.max(jnp.abs(ao - xla(alpha, r))))
 
@@ -410,8 +408,8 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
             report(rows, {"case": f"pallas forward+grad {launch}", "error": repr(err)[:300]})
             continue
         report(rows, {"case": f"pallas forward+grad(alpha, radius) {launch}",
-                     "median_s": t_b["median_s"],
-                     "compile_s": t_b["first_call_s"] - t_b["median_s"]})
+                      "median_s": t_b["median_s"],
+                      "compile_s": t_b["first_call_s"] - t_b["median_s"]})
         ratios[f"pallas_forward_plus_grad_over_forward {launch}"] = (
             t_b["median_s"] / timings[launch])
         both = fn
@@ -426,7 +424,7 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     vol = alpha.size * 4
     ratios["pallas_grad_temp_over_volume"] = (
         both.lower(alpha, r).compile().memory_analysis().temp_size_in_bytes / vol)
-    report(rows, {"case": "(ratios so far)", **ratios})
+    report_ratios(ratios)
     rows += _pallas_bricks(n // 2, ratios, repeats)
     return {"title": "LAO Pallas on GPU", "rows": rows, "ratios": ratios,
             "device": str(jax.devices()[0])}
@@ -447,10 +445,10 @@ def _pallas_bricks(n: int, ratios: dict, repeats: int) -> list[dict]:
             med[(implementation, b)] = time_fn(fn, ball, repeats=repeats)["median_s"]
         except Exception as err:  # noqa: BLE001 - reported, as for the launches
             report(out, {"case": f"sparse ball {implementation} bricks {b}",
-                        "error": repr(err)[:300]})
+                         "error": repr(err)[:300]})
             continue
         report(out, {"case": f"sparse ball {n}^3 L16 M16 R8, {implementation}, bricks {b}",
-                    "median_s": med[(implementation, b)]})
+                     "median_s": med[(implementation, b)]})
     if ("pallas", None) in med and ("pallas", brick) in med:
         ratios["pallas_bricked_speedup_sparse_ball"] = (med[("pallas", None)]
                                                         / med[("pallas", brick)])
