@@ -166,9 +166,8 @@ def run(quick: bool, *, n: int = 512, n_dirs: int = 54, samples: int = 50,
         for launch in launches:
             for correction in (False, True):
                 modules = _triton_modules(launch, correction, n, n_dirs, samples, radius)
-                cotangent_tile = launch.cotangent_tile
-                if correction:
-                    cotangent_tile = (max(1, cotangent_tile[0] // 2), *cotangent_tile[1:])
+                cotangent_tile = (launch.corrected_cotangent_tile if correction
+                                  else launch.cotangent_tile)
                 for kernel in _KERNELS:
                     compiled = _sass(modules[kernel], launch.num_warps, work, kernel)
                     tile = cotangent_tile if kernel == "_chunk_cotangents_kernel" else launch.tile

@@ -151,7 +151,7 @@ def launch_reference():
 
 
 # num_warps is a Triton setting: the interpreter runs Launch(num_warps=8) as the default;
-# (2, 8, 32) with vector=1 covers both the half-depth tile and the unshifted reads
+# (2, 8, 32) with vector=1 covers both a half-depth tile and the unshifted reads
 @pytest.mark.parametrize("launch", (pallas.Launch(), pallas.Launch(tile=(4, 8, 64)),
                                     pallas.Launch(tile=(2, 8, 32), vector=1),
                                     pallas.Launch(tile=(1, 8, 32), cotangent_tile=(4, 8, 32)),

@@ -81,9 +81,11 @@ from .lao import (
 class Launch(NamedTuple):
     """How the kernels are launched.
 
-    ``tile`` is the ``(d, h, w)`` block of voxels one program owns (powers of two),
-    ``cotangent_tile`` the same for the reverse-mode cotangent kernel (smaller: it
-    holds a chunk of samples in registers), ``num_warps`` Triton's warps per
+    ``tile`` is the ``(d, h, w)`` block of voxels one program of the forward,
+    chunk-start and adjoint kernels owns (powers of two), ``cotangent_tile`` the same
+    for the reverse-mode cotangent kernel (it holds a chunk of samples in registers)
+    and ``corrected_cotangent_tile`` for that kernel with opacity correction (whose
+    derivative needs about twice the registers), ``num_warps`` Triton's warps per
     program, and ``vector`` the number of copies of the padded opacity, shifted by
     ``0 .. vector - 1`` voxels along ``w``, that the march reads (1: the padded
     opacity itself). With ``vector = 4`` each window read starts at a multiple of 4
@@ -92,38 +94,44 @@ class Launch(NamedTuple):
 
     The Triton IR of jaxlib 0.10.2 compiled by Triton 3.6 for sm_90a (H100/H200;
     ``python -m benchmarks.run pallas_sass``; another jaxlib and Triton may differ
-    somewhat): one sample of one voxel of the forward march takes 27 instructions
-    with the default launch against 49 with tile ``(2, 8, 32)`` and ``vector = 1``,
-    with no register spills in the sample loop; the reverse-mode kernels take 30
-    (chunk starts), 71 (cotangents, 127 registers) and 39 (adjoint) without opacity
-    correction. With opacity correction, whose derivative needs about twice the
-    registers, the cotangent kernel runs on tiles of half the depth of
-    ``cotangent_tile`` (254 registers and no spill, against 1276 bytes spilled at the
-    full depth). Timings need a GPU: ``python -m benchmarks.run lao_pallas``.
+    somewhat), in instructions per voxel and sample with the default launch: the
+    forward march 30 (55 with tile ``(2, 8, 32)`` and ``vector = 1``), the reverse-mode
+    kernels 33 (chunk starts), 59 (cotangents: 255 registers, 4 bytes spilled) and 38
+    (adjoint); with opacity correction the forward takes 100 and the cotangents 222
+    (255 registers, no spill; ``(2, 8, 32)`` spills 1276 bytes there). Timings need a
+    GPU: ``python -m benchmarks.run lao_pallas``.
 
     Timed on an H200 (JAX 0.11.2, 2026-12-04; $512^3$, $L = 54$, $M = 50$, $R = 50$,
-    no opacity correction; the benchmark's sweep and an ad hoc one), forward: the
-    default 0.61 s (0.59 T samples/s), tile ``(8, 4, 32)`` the same, ``(2, 16, 32)``
-    0.68 s, ``(2, 8, 32)`` 0.72 s, 8 warps 0.74 s, ``(4, 8, 64)`` 0.77 s, 2 warps
-    0.82 s, ``(4, 16, 32)`` 0.82 s, ``(8, 8, 32)`` 0.95 s, ``vector = 2`` (2 warps)
-    1.02 s, ``vector = 1`` 1.11 s. Forward and gradient: the default 5.5 s,
-    ``cotangent_tile`` ``(2, 8, 64)`` 5.0 s, ``(1, 8, 32)`` and ``(2, 4, 32)`` 5.4 s,
-    8 warps 5.7 s; ``(2, 8, 64)`` is not the default because with opacity correction
-    its halved tile holds as many voxels per thread as the full-depth default tile,
-    which spills, and that case was not timed.
+    no opacity correction unless said). Forward, in one run: tile ``(4, 4, 64)``
+    0.579 s (0.63 T samples/s), ``(4, 8, 32)`` 0.615 s, ``(2, 8, 64)`` 0.644 s,
+    ``(4, 4, 64)`` with 8 warps 0.730 s, with ``vector = 1`` 0.830 s; in others,
+    ``(8, 4, 32)`` as ``(4, 8, 32)``, ``(2, 16, 32)`` 0.68 s, ``(2, 8, 32)`` 0.72 s,
+    ``(4, 8, 64)`` 0.77 s, ``(1, 8, 128)`` 0.78 s, 2 warps 0.82 s, ``(8, 8, 32)``
+    0.95 s, and bf16 copies of the opacity (16 bytes hold 8 voxels) 0.95 s. Keeping
+    the eight corner windows of the previous sample in registers and reading again
+    only those whose cell moved (a step crossing $k$ grid planes reads
+    $8 (1 - 2^{-k})$ windows: about 40% fewer loads) took 0.68 s with ``(4, 8, 32)``
+    and 0.60 s with ``(4, 8, 64)``: loads are not what bounds the march, and that
+    version was dropped. Forward and gradient, in one run: the default 4.74 s, tiles
+    ``(4, 8, 32)`` and ``(2, 8, 32)`` (the previous default) 5.50 s. Of those 5.50 s
+    (timed by replacing kernels with copies), the forward and the chunk starts took
+    1.66 s, the cotangents 2.68 s and the adjoint 1.14 s. With opacity correction the
+    default's forward takes 1.29 s and with the gradient 8.35 s (the cotangent tile
+    ``(1, 8, 32)``: ``(1, 8, 64)`` took 8.98 s against 8.51 s in another run).
     """
 
-    tile: tuple[int, int, int] = (4, 8, 32)
-    cotangent_tile: tuple[int, int, int] = (2, 8, 32)
+    tile: tuple[int, int, int] = (4, 4, 64)
+    cotangent_tile: tuple[int, int, int] = (2, 8, 64)
+    corrected_cotangent_tile: tuple[int, int, int] = (1, 8, 32)
     num_warps: int = 4
     vector: int = 4
 
 
 #: The launches ``python -m benchmarks.run lao_pallas`` times (forward).
 DEFAULT_LAUNCH = Launch()
-LAUNCHES = (DEFAULT_LAUNCH, Launch(tile=(2, 8, 32)), Launch(tile=(4, 8, 64)),
-            Launch(num_warps=8), Launch(tile=(2, 8, 32), vector=1),
-            Launch(tile=(4, 8, 32), vector=1))
+LAUNCHES = (DEFAULT_LAUNCH, Launch(tile=(4, 8, 32), cotangent_tile=(2, 8, 32)),
+            Launch(tile=(2, 8, 64)), Launch(num_warps=8),
+            Launch(tile=(2, 8, 32), vector=1), Launch(tile=(4, 4, 64), vector=1))
 
 
 def _check_launch(launch: Launch) -> None:
@@ -133,8 +141,9 @@ def _check_launch(launch: Launch) -> None:
     def power_of_two(n):
         return isinstance(n, int) and n >= 1 and n & (n - 1) == 0
 
-    if not (all(power_of_two(t) for t in (*launch.tile, *launch.cotangent_tile))
-            and len(launch.tile) == len(launch.cotangent_tile) == 3
+    tiles = (launch.tile, launch.cotangent_tile, launch.corrected_cotangent_tile)
+    if not (all(power_of_two(t) for tile in tiles for t in tile)
+            and all(len(tile) == 3 for tile in tiles)
             and power_of_two(launch.num_warps) and power_of_two(launch.vector)):
         raise ValueError(f"volshade._lao_pallas: {launch} needs tiles of three powers of "
                          f"two and a power-of-two `num_warps` and `vector`.")
@@ -393,9 +402,7 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
     """Cotangents of ``alpha``, ``weights``, ``radius`` and ``offset``."""
     dtype = alpha.dtype
     shape = alpha.shape
-    cotangent_tile = launch.cotangent_tile
-    if correction:
-        cotangent_tile = (max(1, cotangent_tile[0] // 2), *cotangent_tile[1:])
+    cotangent_tile = launch.corrected_cotangent_tile if correction else launch.cotangent_tile
     _, _, out_shape = _tiling(shape, tuple(
         max(a, b) for a, b in zip(launch.tile, cotangent_tile, strict=True)))
     n_chunks, chunk = _chunking(samples - 1)
