@@ -2,6 +2,8 @@
 values (every clip shape, also moving under jit and vmap) and in gradients (w.r.t. the
 opacity and the radius; the clip gets none)."""
 
+import sys
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -176,6 +178,25 @@ def test_moving_clip_under_jit_and_vmap_never_recompiles(name):
                                    atol=1e-12)
         np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(full[i]), rtol=0,
                                    atol=1e-12)
+
+
+def test_clips_built_from_numbers_or_arrays_share_one_compile():
+    # a size given as a Python number is a weakly typed leaf, and the same clip built
+    # with float32 arrays compiled contextual_ao (and clip_opacity) a second time, as a
+    # notebook moving a clip from one kind of value to the other would
+    cao, clip_module = (sys.modules[f"volshade.{m}"] for m in ("cao", "clip"))
+    alpha, kw = ALPHA[:12, :12, :12].astype(jnp.float32), dict(KW, radius=2.5, samples=3)
+    unclipped = vs.lao(alpha, **kw)
+    clips = [vs.TorusClip(center=(6.0, 5.0, 6.0), major=3.0, minor=1.0),
+             vs.TorusClip(center=jnp.asarray([5.0, 6.0, 6.0], jnp.float32),
+                          major=jnp.float32(2.5), minor=jnp.float32(1.5))]
+    compiled = [cao._contextual._cached, clip_module._compiled_clip_opacity._cached]
+    sizes = None
+    for clip in clips:
+        got = vs.contextual_ao(alpha, clip=clip, unclipped=unclipped, brick_size=4, **kw)
+        np.testing.assert_allclose(got, _full(alpha, clip, **kw), rtol=0, atol=1e-6)
+        sizes = sizes or [f._cache_size() for f in compiled]
+    assert [f._cache_size() for f in compiled] == sizes
 
 
 @pytest.mark.slow
