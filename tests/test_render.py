@@ -637,17 +637,19 @@ def test_classification_option_is_checked_and_scenes_pass_it_on():
 
 def test_an_eager_render_compiles_once_and_still_refuses_bad_values_at_once():
     # the march and the shared volumes are compiled once per structure: an eager call
-    # with other values (volume, camera pose, Phong coefficients) reuses them
+    # with other values (volume, camera pose, Phong coefficients) reuses them, also when
+    # a coefficient given as a Python number (a weakly typed leaf) comes back as a
+    # float32 array (from a fit, say)
     from volshade.render import _march_view, _shared_volumes
 
     tf = preset("shells")
     scene = vs.Scene(volume=vs.data.phantom("shells", shape=8), transfer=tf, shading="phong",
-                     phong=Phong(diffuse=jnp.asarray(0.5)))
+                     phong=Phong(diffuse=0.5))
     cam = Camera.orbit(azimuth=30.0, elevation=20.0, image_shape=(4, 5))
     first = vs.render(scene, cam)
     sizes = (_march_view._cached._cache_size(), _shared_volumes._cached._cache_size())
     other = eqx.tree_at(lambda s: (s.volume, s.phong.diffuse), scene,
-                        (scene.volume * 0.5, jnp.asarray(0.7)))
+                        (scene.volume * 0.5, jnp.float32(0.7)))
     moved = Camera.orbit(azimuth=75.0, elevation=-10.0, image_shape=(4, 5))
     second = vs.render(other, moved)
     assert (_march_view._cached._cache_size(), _shared_volumes._cached._cache_size()) == sizes

@@ -56,6 +56,23 @@ def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
     return arr
 
 
+def strongly_typed(tree: Any, dtype: Any) -> Any:
+    """``tree`` with each weakly typed floating leaf (a Python number that a
+    converter made an array) made a strongly typed array of the dtype it promotes to
+    with ``dtype``, the computation's: an eager call of a compiled function would
+    otherwise compile again when the same parameter comes as an array
+    (``Phong(diffuse=0.5)``, then a fitted ``jnp.float32``), and the two now compute
+    the same. (Under x64 a number thus takes a float32 volume's dtype before it meets
+    the volume's values, not after: what a float32 array in its place computes.)"""
+    def strong(x):
+        if (isinstance(x, jax.Array) and getattr(x, "weak_type", False)
+                and jnp.issubdtype(x.dtype, jnp.floating)):
+            return x.astype(jnp.result_type(x, dtype))
+        return x
+
+    return jax.tree_util.tree_map(strong, tree)
+
+
 def leaf(where: str, name: str) -> Callable[[Any], Array]:
     """The converter of the parameter field ``name`` of ``where`` (``eqx.field``):
     :func:`float_leaf`, with errors that name the field."""
