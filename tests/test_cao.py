@@ -182,14 +182,14 @@ def test_moving_clip_under_jit_and_vmap_never_recompiles(name):
 
 def test_clips_built_from_numbers_or_arrays_share_one_compile():
     # a size given as a Python number is a weakly typed leaf, and the same clip built
-    # with float32 arrays compiled contextual_ao (and clip_opacity) a second time, as a
-    # notebook moving a clip from one kind of value to the other would
+    # with arrays compiled contextual_ao (and clip_opacity) a second time, as a notebook
+    # moving a clip from one kind of value to the other would
     cao, clip_module = (sys.modules[f"volshade.{m}"] for m in ("cao", "clip"))
     alpha, kw = ALPHA[:12, :12, :12].astype(jnp.float32), dict(KW, radius=2.5, samples=3)
     unclipped = vs.lao(alpha, **kw)
     clips = [vs.TorusClip(center=(6.0, 5.0, 6.0), major=3.0, minor=1.0),
-             vs.TorusClip(center=jnp.asarray([5.0, 6.0, 6.0], jnp.float32),
-                          major=jnp.float32(2.5), minor=jnp.float32(1.5))]
+             vs.TorusClip(center=jnp.asarray([5.0, 6.0, 6.0]), major=jnp.asarray(2.5),
+                          minor=jnp.asarray(1.5))]
     compiled = [cao._contextual._cached, clip_module._compiled_clip_opacity._cached]
     sizes = None
     for clip in clips:

@@ -326,20 +326,17 @@ def _shape_of(shape, where: str) -> tuple[int, int, int]:
 
 
 def _clip(clip: Clip, where: str) -> Clip:
-    """``clip``, checked to be a clip shape, with its floating leaves in the one dtype
-    they promote to (weak types honoured, so no arithmetic changes): a size given as a
-    Python number is a weakly typed leaf, and a compiled function would otherwise be
-    compiled again for the same clip built with an array (``radius=2.0`` and then
-    ``radius=jnp.float32(2.0)`` while the clip moves)."""
+    """``clip``, checked to be a clip shape, with its leaves given as Python numbers made
+    arrays of the dtype the clip computes in (:func:`volshade._checks.strongly_typed`):
+    the compiled functions are not compiled again for the same clip built with arrays
+    (``radius=2.0``, then ``radius=jnp.float32(2.0)`` while the clip moves)."""
     if not isinstance(clip, Clip):
         raise TypeError(f"{where}: `clip` must be a volshade clip shape (SphereClip, BoxClip, "
                         f"TorusClip or HalfSpaceClip), got {type(clip).__name__}.")
     leaves = [x for x in jax.tree_util.tree_leaves(clip) if eqx.is_inexact_array(x)]
     if not leaves:  # every leaf replaced by a non-float (eqx.tree_at): _checked names it
         return clip
-    dtype = jnp.result_type(*leaves)
-    return jax.tree_util.tree_map(
-        lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, clip)
+    return _checks.strongly_typed(clip, jnp.result_type(*leaves))
 
 
 def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
