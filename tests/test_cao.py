@@ -187,9 +187,10 @@ def test_clips_built_from_numbers_or_arrays_share_one_compile():
     cao, clip_module = (sys.modules[f"volshade.{m}"] for m in ("cao", "clip"))
     alpha, kw = ALPHA[:12, :12, :12].astype(jnp.float32), dict(KW, radius=2.5, samples=3)
     unclipped = vs.lao(alpha, **kw)
+    dtype = jnp.result_type(float)  # the default float dtype: jnp.asarray(2.5) is weak too
     clips = [vs.TorusClip(center=(6.0, 5.0, 6.0), major=3.0, minor=1.0),
-             vs.TorusClip(center=jnp.asarray([5.0, 6.0, 6.0]), major=jnp.asarray(2.5),
-                          minor=jnp.asarray(1.5))]
+             vs.TorusClip(center=jnp.asarray([5.0, 6.0, 6.0], dtype),
+                          major=jnp.asarray(2.5, dtype), minor=jnp.asarray(1.5, dtype))]
     compiled = [cao._contextual._cached, clip_module._compiled_clip_opacity._cached]
     sizes = None
     for clip in clips:
