@@ -84,6 +84,17 @@ def _triton_modules(launch, correction: bool, n: int, n_dirs: int, samples: int,
     return modules
 
 
+def _ptxas(bin_dir: pathlib.Path) -> pathlib.Path:
+    """The ``ptxas`` Triton itself compiles sm_90a with (``get_ptxas``): Triton 3.9 ships
+    a second, newer one for sm_90 and up, whose PTX (ISA 9.4) the first rejects; 3.6
+    answers its only one; older wheels have no ``get_ptxas``."""
+    try:
+        from triton.backends.nvidia.compiler import get_ptxas
+    except ImportError:
+        return bin_dir / "ptxas"
+    return pathlib.Path(get_ptxas(90).path)
+
+
 def _sass(ttir: str, num_warps: int, work: pathlib.Path, name: str) -> dict:
     """Compile for sm_90a; registers, spills and the SASS instructions."""
     import triton
@@ -97,7 +108,7 @@ def _sass(ttir: str, num_warps: int, work: pathlib.Path, name: str) -> dict:
     ptx = work / f"{name}.ptx"
     ptx.write_text(compiled.asm["ptx"])
     cubin = work / f"{name}.cubin"
-    info = subprocess.run([bin_dir / "ptxas", "-arch=sm_90a", "-v", ptx, "-o", cubin],
+    info = subprocess.run([_ptxas(bin_dir), "-arch=sm_90a", "-v", ptx, "-o", cubin],
                           capture_output=True, text=True, check=True).stderr
     sass = subprocess.run([bin_dir / "cuobjdump", "--dump-sass", cubin], capture_output=True,
                           text=True, check=True).stdout
