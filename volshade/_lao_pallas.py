@@ -98,8 +98,8 @@ class Launch(NamedTuple):
     forward march 30 (55 with tile ``(2, 8, 32)`` and ``vector = 1``), the reverse-mode
     kernels 33 (chunk starts), 59 (cotangents: 255 registers, 4 bytes spilled) and 38
     (adjoint); with opacity correction the forward takes 100 and the cotangents 222
-    (255 registers, no spill; ``(2, 8, 32)`` spills 1276 bytes there). Timings need a
-    GPU: ``python -m benchmarks.run lao_pallas``.
+    (255 registers, no spill; ``(2, 8, 32)`` and ``(1, 8, 64)`` spill 1228 and 1276
+    bytes there). Timings need a GPU: ``python -m benchmarks.run lao_pallas``.
 
     Timed on an H200 (JAX 0.11.2, 2026-12-04; $512^3$, $L = 54$, $M = 50$, $R = 50$,
     no opacity correction unless said). Forward, in one run: tile ``(4, 4, 64)``

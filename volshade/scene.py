@@ -524,12 +524,12 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
     camera = (_containers_as_arrays(camera, "camera") if isinstance(camera, Camera) else
               [_containers_as_arrays(cam, f"camera[{i}]") for i, cam in enumerate(camera)])
     scene, camera = _finite_parameters(scene, camera)
-    # the render computes in float32 at least
-    scene, camera = _checks.strongly_typed(
-        (scene, camera), jnp.promote_types(jnp.result_type(scene.volume), jnp.float32))
     # the volume first, so a NaN in it is named as the render's, not as the first effect's
     scene = eqx.tree_at(lambda s: s.volume, scene,
                         _checks.finite(scene.volume, "volume", "volshade.render"))
+    # the render computes in float32 at least
+    scene, camera = _checks.strongly_typed(
+        (scene, camera), jnp.promote_types(jnp.result_type(scene.volume), jnp.float32))
     cameras = [camera] if isinstance(camera, Camera) else list(camera)
     ambient = AMBIENT[scene.ambient](scene)
     opacity_scale = MODULATION[scene.modulation](scene)
