@@ -111,8 +111,10 @@ class Launch(NamedTuple):
     the eight corner windows of the previous sample in registers and reading again
     only those whose cell moved (a step crossing $k$ grid planes reads
     $8 (1 - 2^{-k})$ windows: about 40% fewer loads) took 0.68 s with ``(4, 8, 32)``
-    and 0.60 s with ``(4, 8, 64)``: loads are not what bounds the march, and that
-    version was dropped. Forward and gradient, in one run: the default 4.74 s, tiles
+    (0.61 s without) and 0.60 s with ``(4, 8, 64)`` (0.77 s without, in another run):
+    it helps a tile of 16 voxels per thread and hurts one of 8, did not beat
+    ``(4, 4, 64)`` without it (0.58 s in that run), and was dropped (it was not tried
+    with ``(4, 4, 64)``). Forward and gradient, in one run: the default 4.74 s, tiles
     ``(4, 8, 32)`` and ``(2, 8, 32)`` (the previous default) 5.50 s. Of those 5.50 s
     (timed by replacing kernels with copies), the forward and the chunk starts took
     1.66 s, the cotangents 2.68 s and the adjoint 1.14 s. With opacity correction the
@@ -123,7 +125,7 @@ class Launch(NamedTuple):
     every program, cut the instructions per voxel and sample (forward 30 -> 26,
     cotangents 59 -> 52, adjoint 38 -> 34) and changed no timing (forward 0.582 s
     against 0.576 s, with the gradient 4.81 s against 4.71 s, in one run), so it was
-    dropped too: neither the loads nor the instruction count bound these kernels.
+    dropped too: the instruction count does not bound these kernels.
     """
 
     tile: tuple[int, int, int] = (4, 4, 64)
