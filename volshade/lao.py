@@ -62,8 +62,8 @@ available through the custom VJP (optimistix least-squares solvers then need
 gradients, as Pallas (Triton) kernels in which one program marches all rays of a
 tile of voxels in registers (``volshade._lao_pallas``). On an H200 (JAX 0.11.2,
 $512^3$, $L = 54$, $M = 50$, $R = 50$; ``python -m benchmarks.run lao_pallas``) it
-marched 0.59 T samples/s against the XLA march's 0.23 T (0.61 s against 1.59 s),
-and forward plus the gradient w.r.t. opacity and radius took 5.5 s against 14.5 s,
+marched 0.63 T samples/s against the XLA march's 0.23 T (0.58 s against 1.59 s),
+and forward plus the gradient w.r.t. opacity and radius took 4.7 s against 14.5 s,
 with the same values (2.4e-7) and gradients (1.3e-5 relative). It stays opt-in:
 it holds four padded copies of the volume (the XLA forward, about three volumes in
 all), 29 volumes in reverse mode against 22.5, and Pallas' Triton backend is
@@ -842,7 +842,7 @@ def lao(
             the Pallas march skips every tile of voxels whose bricks have no opacity
             within reach (always, where the XLA march first weighs the active
             fraction); its gradient is computed everywhere. ``"pallas"`` is about
-            2.6x faster on an H200 and needs more memory (module docstring).
+            2.7x faster on an H200 and needs more memory (module docstring).
 
     Returns:
         ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``alpha`` (computed in float32

@@ -529,7 +529,7 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
                         _checks.finite(scene.volume, "volume", "volshade.render"))
     # the render computes in float32 at least
     scene, camera = _checks.strongly_typed(
-        (scene, camera), jnp.promote_types(jnp.result_type(scene.volume), jnp.float32))
+        (scene, camera), jnp.promote_types(scene.volume.dtype, jnp.float32))
     cameras = [camera] if isinstance(camera, Camera) else list(camera)
     ambient = AMBIENT[scene.ambient](scene)
     opacity_scale = MODULATION[scene.modulation](scene)
