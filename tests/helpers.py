@@ -27,7 +27,7 @@ def central_difference(f, x, direction, h=1e-6):
 
 def check_grad_fd(f, x, *, key=0, h=1e-6, rtol=1e-4, n_dirs=3):
     """Compare ``jax.grad(f)(x) . v`` with central differences along random ``v``."""
-    g = jax.grad(f)(x)
+    g = jax.jit(jax.grad(f))(x)
     rng = np.random.default_rng(key)
     for _ in range(n_dirs):
         v = jnp.asarray(rng.standard_normal(np.shape(x)))

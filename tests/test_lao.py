@@ -421,8 +421,9 @@ def test_bricked_gradients_and_vmap(always_bricked):
         return jnp.sum(lao(a, directions=dirs, radius=r, samples=2, max_radius=5.0,
                            brick_size=brick) ** 2)
 
-    g_full = jax.jit(jax.grad(f, (0, 1)), static_argnums=2)(alpha, 4.2, None)
-    g_brick = jax.jit(jax.grad(f, (0, 1)), static_argnums=2)(alpha, 4.2, 4)
+    grad = jax.jit(jax.grad(f, (0, 1)), static_argnums=2)
+    g_full = grad(alpha, 4.2, None)
+    g_brick = grad(alpha, 4.2, 4)
     np.testing.assert_allclose(np.asarray(g_brick[0]), np.asarray(g_full[0]), atol=1e-12)
     np.testing.assert_allclose(float(g_brick[1]), float(g_full[1]), rtol=1e-12)
     batch = jnp.stack([alpha, _sparse_alpha((12, 12, 12), 14, jnp.float64)])
@@ -433,9 +434,8 @@ def test_bricked_gradients_and_vmap(always_bricked):
     # vmapped, each element takes its own branch (a loop): gradients as each alone
     radii = jnp.asarray([4.2, 3.1])
     grads = jax.jit(jax.vmap(jax.grad(lambda a, r: f(a, r, 4), (0, 1))))(batch, radii)
-    unbricked = jax.jit(jax.grad(f, (0, 1)), static_argnums=2)
     for i in range(2):
-        want = unbricked(batch[i], radii[i], None)
+        want = grad(batch[i], radii[i], None)
         np.testing.assert_allclose(np.asarray(grads[0][i]), np.asarray(want[0]), atol=1e-12)
         np.testing.assert_allclose(float(grads[1][i]), float(want[1]), rtol=1e-12)
 

@@ -295,7 +295,7 @@ def test_gradient_magnitude_of_huge_components_and_its_checks():
     np.testing.assert_allclose(jax.grad(lambda g: jnp.sum(gradient_magnitude(g)))(tiny),
                                [[0.6, -0.8, 0.0]], rtol=1e-6)
     g64 = jnp.asarray(np.random.default_rng(6).normal(size=(4, 3)))
-    check_grads(gradient_magnitude, (g64,), order=2, modes=["fwd", "rev"])
+    check_grads(jax.jit(gradient_magnitude), (g64,), order=2, modes=["fwd", "rev"])
     where = "volshade.gradient.gradient_magnitude"
     for bad in (jnp.asarray([[jnp.nan, 0.0, 0.0]]), jnp.asarray([jnp.inf, 1.0, 0.0])):
         with pytest.raises(ValueError, match=f"{where}: `gradient` contains NaN or inf"):
