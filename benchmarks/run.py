@@ -11,12 +11,18 @@ Each benchmark is a module ``benchmarks/NAME.py`` with a function
      "ratios": {"name": float, ...},                          # measured in this same run
      "notes": str}                 # optional
 
-The harness adds the device, the JAX version and the date, prints a table and
-writes JSON (to OUT, or to benchmarks/results/NAME.json).
+The harness adds the device, the JAX version, the date, the commit and a digest of the
+sources it ran (``volshade/`` and ``benchmarks/``), prints a table and writes JSON (to
+OUT, or to benchmarks/results/NAME.json). On a copy of the tree whose ``.git`` is not
+current (the lent GPU machine's), pass the commit with ``--commit REV``; the digest
+tells whether a record was made from that commit's sources
+(``python -c "from benchmarks.run import sources_digest; print(sources_digest())"``
+there gives the same).
 """
 
 import argparse
 import datetime
+import hashlib
 import importlib
 import json
 import pathlib
@@ -59,12 +65,27 @@ def _commit() -> str:
     return head + ("+changes" if dirty.strip() else "")
 
 
+def sources_digest(root: pathlib.Path | None = None) -> str:
+    """SHA-256 (first 16 hex digits) of the Python sources under ``volshade/`` and
+    ``benchmarks/`` of ``root`` (this checkout by default): their paths and contents, in
+    path order, so that it depends on what ran, not on git."""
+    root = pathlib.Path(__file__).resolve().parents[1] if root is None else root
+    digest = hashlib.sha256()
+    for path in sorted(p for d in ("volshade", "benchmarks") for p in (root / d).rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()[:16]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("name", choices=BENCHMARKS)
     parser.add_argument("--quick", action="store_true", help="small sizes, few repeats")
     parser.add_argument("--json", type=pathlib.Path, default=None, help="where to write JSON")
+    parser.add_argument("--commit", default=None,
+                        help="the commit to record instead of the checkout's (for a copied "
+                             "tree whose .git is not current)")
     args = parser.parse_args(argv)
 
     module = importlib.import_module(f"benchmarks.{args.name}")
@@ -77,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         jax_version=jax.__version__,
         python=platform.python_version(),
         machine=platform.machine(),
-        commit=_commit(),
+        commit=_commit() if args.commit is None else args.commit,
+        sources=sources_digest(),
         date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     )
     print(f"# {result['title']}  [{result['device']}, jax {result['jax_version']}]")
