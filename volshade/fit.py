@@ -594,7 +594,7 @@ def fit(
     # on; the test (a reverse pass) is compiled apart, for such fits alone: in the solve's
     # program it made every fit compile longer (the first call of the example below on a
     # 2-core CPU: 10.2 s with it, 9.0 s without)
-    if any(bool(jnp.all(ui == u0_i)) for ui, u0_i in zip(u, u0, strict=True)):
+    if any(np.array_equal(ui, u0_i) for ui, u0_i in zip(u, u0, strict=True)):
         u = _refuse_without_effect(problem, u, u0, paths)
     fitted, values = problem.place(u)
     return Fit(scene=fitted, values=dict(zip(paths, values, strict=True)), loss=loss,
