@@ -338,8 +338,10 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
                    ) -> dict:
     """``implementation="pallas"`` on the issue's GPU case, against the XLA march in the
     same run: forward time per launch (tile, warps) in ``volshade._lao_pallas.LAUNCHES``,
-    then forward + gradient w.r.t. opacity and radius with the default launch and the
-    fastest, the largest difference from the XLA march (values and gradients), and
+    then forward + gradient w.r.t. opacity and radius with the default launch, the
+    fastest and the reverse-mode launches (``GRADIENT_LAUNCHES``; with opacity
+    correction ``CORRECTED_GRADIENT_LAUNCHES``), the largest difference from the XLA
+    march (values and gradients), and
     empty-space skipping on a sparse ball of half the edge (``_pallas_bricks``). A
     launch that fails to compile is recorded with its error and skipped (a fault on
     the device ends the process: run this before the other GPU cases). On a CPU the
@@ -353,9 +355,9 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     pad = (min(n, math.ceil(radius) + 1),) * 3
     repeats = 3 if jax.default_backend() == "gpu" else 1
 
-    def occlusion(launch):
+    def occlusion(launch, correction=False):
         return lambda al, rr: pallas.occlusion_sum(al, dirs, weights, rr, a, pad=pad,
-                                                   samples=samples, correction=False,
+                                                   samples=samples, correction=correction,
                                                    launch=launch)
 
     rows = _pallas_agreement()
@@ -396,10 +398,12 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
         return jax.jit(jax.value_and_grad(lambda al, rr: jnp.sum(fn(al, rr)), (0, 1)))
 
     # the gradient kernels hold a chunk of samples in registers, so the fastest forward
-    # tile need not be the fastest here: the default launch is timed too
-    both = None
-    for launch in dict.fromkeys((pallas.Launch(), best)):
-        if launch not in timings:
+    # tile need not be the fastest here: the default launch is timed too, and the
+    # reverse-mode launches (their forward kernel is the default's)
+    both, others = None, {}
+    for launch in dict.fromkeys((pallas.Launch(), best, *pallas.GRADIENT_LAUNCHES)):
+        forward_s = timings.get(launch, timings.get(pallas.Launch()))
+        if forward_s is None:
             continue
         fn = loss(lambda al, rr, launch=launch: 1 - occlusion(launch)(al, rr) / samples)
         try:
@@ -410,12 +414,20 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
         report(rows, {"case": f"pallas forward+grad(alpha, radius) {launch}",
                       "median_s": t_b["median_s"],
                       "compile_s": t_b["first_call_s"] - t_b["median_s"]})
-        ratios[f"pallas_forward_plus_grad_over_forward {launch}"] = (
-            t_b["median_s"] / timings[launch])
-        both = fn
+        ratios[f"pallas_forward_plus_grad_over_forward {launch}"] = t_b["median_s"] / forward_s
+        if launch == pallas.Launch():
+            both = fn
+        else:
+            others[launch] = fn
     if both is None:
         return {"title": "LAO Pallas on GPU", "rows": rows, "ratios": ratios}
+    rows += _pallas_corrected_gradients(occlusion, alpha, r, ratios, repeats)
     (_, (g_alpha, g_radius)) = both(alpha, r)
+    # a launch changes how the kernels run, not what they compute (each gradient is
+    # computed once more here)
+    for launch, fn in others.items():
+        ratios[f"pallas_grad_alpha_max_rel_diff_vs_default_launch {launch}"] = float(
+            jnp.max(jnp.abs(fn(alpha, r)[1][0] - g_alpha)) / jnp.max(jnp.abs(g_alpha)))
     (_, (x_alpha, x_radius)) = loss(xla)(alpha, r)
     ratios["pallas_grad_alpha_max_rel_diff_vs_xla"] = float(
         jnp.max(jnp.abs(g_alpha - x_alpha)) / jnp.max(jnp.abs(x_alpha)))
@@ -428,6 +440,34 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     rows += _pallas_bricks(n // 2, ratios, repeats)
     return {"title": "LAO Pallas on GPU", "rows": rows, "ratios": ratios,
             "device": str(jax.devices()[0])}
+
+
+def _pallas_corrected_gradients(occlusion, alpha, r, ratios, repeats) -> list[dict]:
+    """With opacity correction: the forward and forward + gradient of each launch in
+    ``volshade._lao_pallas.CORRECTED_GRADIENT_LAUNCHES`` (``occlusion(launch,
+    correction)`` is the kernel's occlusion sum)."""
+    from volshade import _lao_pallas as pallas
+
+    out = []
+    forward = time_fn(jax.jit(occlusion(pallas.Launch(), correction=True)), alpha, r,
+                      repeats=repeats)["median_s"]
+    report(out, {"case": "pallas forward, opacity correction, default launch",
+                 "median_s": forward})
+    for launch in pallas.CORRECTED_GRADIENT_LAUNCHES:
+        fn = jax.jit(jax.value_and_grad(
+            lambda al, rr, launch=launch: jnp.sum(occlusion(launch, correction=True)(al, rr)),
+            (0, 1)))
+        try:
+            t = time_fn(fn, alpha, r, repeats=repeats)
+        except Exception as err:  # noqa: BLE001 - reported, as for the launches
+            report(out, {"case": f"pallas forward+grad, correction {launch}",
+                         "error": repr(err)[:300]})
+            continue
+        report(out, {"case": f"pallas forward+grad(alpha, radius), correction {launch}",
+                     "median_s": t["median_s"], "compile_s": t["first_call_s"] - t["median_s"]})
+        ratios[f"pallas_corrected_forward_plus_grad_over_forward {launch}"] = (
+            t["median_s"] / forward)
+    return out
 
 
 def _pallas_bricks(n: int, ratios: dict, repeats: int) -> list[dict]:

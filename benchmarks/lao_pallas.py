@@ -1,4 +1,5 @@
-"""The LAO Pallas kernels on a GPU: launch sweep, forward + gradient, agreement.
+"""The LAO Pallas kernels on a GPU: launch sweeps (forward; forward + gradient over the
+reverse-mode launches), agreement.
 
     python -m benchmarks.run lao_pallas [--quick]
 

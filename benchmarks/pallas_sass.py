@@ -7,9 +7,13 @@ Lowers ``lao(..., implementation="pallas")`` (value and gradient, issue 3's case
 512^3, L = 54, M = 50, R = 50) for CUDA on this machine, compiles each kernel's
 Triton IR with the ``triton`` package for sm_90a, and reads ``ptxas -v`` and the SASS
 (``cuobjdump``; both ship in Triton's wheel). For every launch in
-``volshade._lao_pallas.LAUNCHES``, with and without opacity correction:
+``volshade._lao_pallas.LAUNCHES`` (and without ``--quick`` the reverse-mode
+``GRADIENT_LAUNCHES`` and ``CORRECTED_GRADIENT_LAUNCHES``), with and without opacity
+correction:
 
-* registers and spill bytes of each kernel;
+* registers and spill bytes of each kernel, and the warps of it that fit on a
+  multiprocessor by registers (65536 per multiprocessor, allocated per warp in
+  multiples of 256, at most 64 warps: Hopper's published limits);
 * instructions per voxel and sample: the sample loop of the forward and chunk-start
   kernels, and the whole cotangent and adjoint kernels over a chunk, divided by the
   voxels a thread owns (and the chunk's samples);
@@ -118,6 +122,12 @@ def _sass(ttir: str, num_warps: int, work: pathlib.Path, name: str) -> dict:
             "instructions": instructions, "labels": labels}
 
 
+def _resident_warps(registers: int, num_warps: int) -> int:
+    """Warps of a kernel that fit on one Hopper multiprocessor by their registers."""
+    per_warp = -(-registers // 8) * 8 * 32
+    return num_warps * min(64 // num_warps, 65536 // (per_warp * num_warps))
+
+
 def _parse_sass(sass: str) -> tuple[list[tuple[int, str]], dict[str, int]]:
     """``cuobjdump --dump-sass`` text -> ``[(address, instruction)]`` and the address of
     each branch label (``.L_x_N:`` lines name the instruction after them)."""
@@ -169,12 +179,13 @@ def run(quick: bool, *, n: int = 512, n_dirs: int = 54, samples: int = 50,
     from volshade import _lao_pallas as pallas
     from volshade.lao import _chunking
 
-    _, chunk = _chunking(samples - 1)
-    launches = pallas.LAUNCHES[:2] if quick else pallas.LAUNCHES
+    launches = pallas.LAUNCHES[:2] if quick else dict.fromkeys(
+        pallas.LAUNCHES + pallas.GRADIENT_LAUNCHES + pallas.CORRECTED_GRADIENT_LAUNCHES)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = pathlib.Path(tmp)
         for launch in launches:
+            _, chunk = _chunking(samples - 1, launch.chunk)
             for correction in (False, True):
                 modules = _triton_modules(launch, correction, n, n_dirs, samples, radius)
                 cotangent_tile = (launch.corrected_cotangent_tile if correction
@@ -193,9 +204,11 @@ def run(quick: bool, *, n: int = 512, n_dirs: int = 54, samples: int = 50,
                         re.search(r"LDG\S*", t).group(0) for t in body if "LDG" in t)
                     rows.append({
                         "case": f"{kernel} tile {tile} warps {launch.num_warps} vector "
-                                f"{launch.vector} correction {correction}",
+                                f"{launch.vector} chunk {chunk} correction {correction}",
                         "registers": compiled["registers"],
                         "spill_bytes": compiled["spill_bytes"],
+                        "resident_warps": _resident_warps(compiled["registers"],
+                                                          launch.num_warps),
                         "instructions_per_voxel_sample":
                             len(body) / (per_thread * samples_per_body),
                         "loads": " ".join(f"{k}:{v}" for k, v in sorted(loads.items())),

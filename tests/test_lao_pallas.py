@@ -89,6 +89,26 @@ def test_bad_launch():
             pallas.occlusion_sum(jnp.zeros((4, 4, 4)), vdirs.fibonacci(2), jnp.ones(2), 2.0,
                                  1.0, pad=(3, 3, 3), samples=4, correction=False,
                                  launch=launch)
+    for chunk in (0, 2.5):
+        with pytest.raises(ValueError, match="`chunk` of at least one"):
+            pallas.occlusion_sum(jnp.zeros((4, 4, 4)), vdirs.fibonacci(2), jnp.ones(2), 2.0,
+                                 1.0, pad=(3, 3, 3), samples=4, correction=False,
+                                 launch=pallas.Launch(chunk=chunk))
+
+
+def test_chunking():
+    """Reverse-mode chunks: about sqrt(n) samples by default, at most ``longest``, as
+    even as they can be, and never longer than the samples."""
+    chunking = lao_module._chunking
+    assert chunking(49) == (7, 7)
+    assert chunking(5) == (2, 3)
+    assert chunking(49, 5) == (10, 5)
+    assert chunking(49, 4) == (13, 4)
+    assert chunking(10, 4) == (3, 4)
+    assert chunking(5, 1) == (5, 1)
+    assert chunking(5, 2) == (3, 2)
+    assert chunking(5, 9) == (1, 5)
+    assert chunking(0, 3) == (0, 0)
 
 
 def test_float32_matches_gather_reference():
@@ -149,16 +169,18 @@ def launch_reference():
 
 
 # num_warps is a Triton setting: the interpreter runs Launch(num_warps=8) as the default;
-# (2, 8, 32) with vector=1 covers both a half-depth tile and the unshifted reads
+# (2, 8, 32) with vector=1 covers both a half-depth tile and the unshifted reads; the
+# case's 5 samples make chunks of 1, 2 (the last one masked) and one of all of them
 @pytest.mark.parametrize("launch", (pallas.Launch(), pallas.Launch(tile=(4, 8, 64)),
-                                    pallas.Launch(tile=(2, 8, 32), vector=1),
-                                    pallas.Launch(tile=(1, 8, 32), cotangent_tile=(4, 8, 32)),
+                                    pallas.Launch(tile=(2, 8, 32), vector=1, chunk=1),
+                                    pallas.Launch(tile=(1, 8, 32), cotangent_tile=(4, 8, 32),
+                                                  chunk=2),
                                     pallas.Launch(tile=(4, 4, 4), cotangent_tile=(1, 1, 1),
-                                                  vector=8)))
+                                                  vector=8, chunk=9)))
 def test_every_launch_computes_the_same(launch, launch_reference):
-    """Tiles, warps and the shifted copies (``vector``) change how the kernels run,
-    not what they compute; the volume is smaller than some tiles and not a multiple
-    of any, and its ``w`` extent is not a multiple of ``vector``."""
+    """Tiles, warps, the shifted copies (``vector``) and the reverse-mode chunk change
+    how the kernels run, not what they compute; the volume is smaller than some tiles
+    and not a multiple of any, and its ``w`` extent is not a multiple of ``vector``."""
     args, (want, want_grads) = launch_reference
     got, grads = jax.value_and_grad(_launch_loss, argnums=(0, 1))(*args, launch)
     np.testing.assert_allclose(got, want, rtol=1e-13)
@@ -335,7 +357,8 @@ def _kernel_calls(fn, *args) -> list[str]:
     return re.findall(r'custom_call @"?([^"(\s]+)', text)
 
 
-@pytest.mark.parametrize("launch", pallas.LAUNCHES)
+@pytest.mark.parametrize("launch", dict.fromkeys(
+    pallas.LAUNCHES + pallas.GRADIENT_LAUNCHES + pallas.CORRECTED_GRADIENT_LAUNCHES))
 def test_kernels_lower_to_triton(launch):
     """The four kernels (forward; chunk starts, cotangents and adjoint of the VJP)
     lower to Triton for every launch the GPU benchmark times, vmapped too with the

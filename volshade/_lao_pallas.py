@@ -20,8 +20,8 @@ Reverse mode keeps the recompute-instead-of-store scheme of the XLA VJP, one
 direction at a time, in three kernels:
 
 1. ``_chunk_starts``: march forward, store the transmittance $T$ at the start of
-   every chunk of about $\sqrt{M}$ samples ($\sqrt M$ volumes), and $occ_l$
-   (for the weight's cotangent).
+   every chunk of about $\sqrt{M}$ samples ($\sqrt M$ volumes; ``Launch.chunk``
+   sets shorter chunks), and $occ_l$ (for the weight's cotangent).
 2. ``_chunk_cotangents`` (chunks in reverse): reload the chunk's samples and
    their slopes along the ray, rebuild $T_i$ from the stored start, sweep back
    with the suffix sums $S_i$ and write $g_i = \bar o\, \hat w_l\, v_i T_i S_i$
@@ -37,11 +37,11 @@ direction at a time, in three kernels:
 
 Memory, in volumes of the (tile-rounded) input: the forward holds the four
 shifted copies of the padded volume, $4 (n + 2p)^3 / n^3$ (5.8 at $256^3$ with
-$R = 16$), and the output. Reverse mode holds the copies, $\sqrt M$ chunk
-starts, the $g$ buffer of one chunk ($\sqrt M$ volumes each grown by the
-padding, $(n + 2p)^3 / n^3$ of one: about 1.7 at $512^3$ with $R = 50$, but 27
-when the padding is the whole extent, i.e. a traced radius without
-``max_radius``) and about four carried volumes, for any $L$.
+$R = 16$), and the output. Reverse mode holds the copies, the chunk starts
+($\sqrt M$), the $g$ buffer of one chunk (its $\sqrt M$ samples' volumes, each
+grown by the padding, $(n + 2p)^3 / n^3$ of one: about 1.7 at $512^3$ with
+$R = 50$, but 27 when the padding is the whole extent, i.e. a traced radius
+without ``max_radius``) and about four carried volumes, for any $L$.
 
 When lowered for CUDA the kernels are compiled by Triton; on any other platform
 they run in Pallas' interpreter (exact, slow), which is how the test suite checks
@@ -79,7 +79,7 @@ from .lao import (
 
 
 class Launch(NamedTuple):
-    """How the kernels are launched.
+    r"""How the kernels are launched.
 
     ``tile`` is the ``(d, h, w)`` block of voxels one program of the forward,
     chunk-start and adjoint kernels owns (powers of two), ``cotangent_tile`` the same
@@ -90,7 +90,12 @@ class Launch(NamedTuple):
     ``0 .. vector - 1`` voxels along ``w``, that the march reads (1: the padded
     opacity itself). With ``vector = 4`` each window read starts at a multiple of 4
     voxels of one copy, so Triton loads four voxels (16 bytes) per instruction, at
-    the price of four padded volumes in memory.
+    the price of four padded volumes in memory. ``chunk`` is the most samples of a
+    reverse-mode chunk (``None``: about $\sqrt{M}$, :func:`volshade.lao._chunking`).
+    The cotangent kernel holds a chunk's transmittances, opacities and slopes in
+    registers, so a shorter chunk needs fewer of them (more programs can run at once)
+    and keeps a shorter $g$ buffer, at the price of more chunk starts: $\lceil (M -
+    1) / c \rceil$ volumes instead of about $\sqrt{M}$.
 
     The Triton IR of jaxlib 0.10.2 compiled by Triton 3.6 for sm_90a (H100/H200;
     ``python -m benchmarks.run pallas_sass``; another jaxlib and Triton may differ
@@ -126,6 +131,20 @@ class Launch(NamedTuple):
     cotangents 59 -> 52, adjoint 38 -> 34) and changed no timing (forward 0.582 s
     against 0.576 s, with the gradient 4.81 s against 4.71 s, in one run), so it was
     dropped too: the instruction count does not bound these kernels.
+
+    Shorter reverse-mode chunks (``chunk``), in that sm_90a build (static, not timed;
+    ``python -m benchmarks.run pallas_sass``), for the cotangent kernel; warps that
+    fit on a multiprocessor by registers in brackets: without opacity correction,
+    tile ``(2, 8, 64)`` takes 255 registers at the default chunk of 7 samples (8
+    warps), 151 at chunk 3 (12) and 87 at chunk 2 (20), for 59, 68 and 74
+    instructions per voxel and sample, and ``(4, 4, 64)`` at chunk 5 168 registers
+    (12) and 63 instructions; with correction, ``(1, 8, 64)`` at chunk 4 253
+    registers without a spill (8) and 179 instructions against the default's 222,
+    and ``(2, 8, 32)`` at chunk 2 149 registers (12) and 189 instructions. Each chunk
+    costs the adjoint and the suffix carry a volume read and written, so shorter
+    chunks trade those for occupancy: ``GRADIENT_LAUNCHES`` and
+    ``CORRECTED_GRADIENT_LAUNCHES`` are the launches the GPU benchmark times to
+    decide.
     """
 
     tile: tuple[int, int, int] = (4, 4, 64)
@@ -133,6 +152,7 @@ class Launch(NamedTuple):
     corrected_cotangent_tile: tuple[int, int, int] = (1, 8, 32)
     num_warps: int = 4
     vector: int = 4
+    chunk: int | None = None
 
 
 #: The launches ``python -m benchmarks.run lao_pallas`` times (forward).
@@ -140,12 +160,20 @@ DEFAULT_LAUNCH = Launch()
 LAUNCHES = (DEFAULT_LAUNCH, Launch(tile=(4, 8, 32), cotangent_tile=(2, 8, 32)),
             Launch(tile=(2, 8, 64)), Launch(num_warps=8),
             Launch(tile=(2, 8, 32), vector=1), Launch(tile=(4, 4, 64), vector=1))
+#: The reverse-mode launches it times forward plus gradient, without and with opacity
+#: correction: shorter chunks with the cotangent tiles that fit them in fewer registers
+#: (see :class:`Launch`; the forward kernel is the default's).
+GRADIENT_LAUNCHES = (DEFAULT_LAUNCH, Launch(cotangent_tile=(4, 4, 64), chunk=5),
+                     Launch(chunk=3), Launch(chunk=2))
+CORRECTED_GRADIENT_LAUNCHES = (DEFAULT_LAUNCH,
+                               Launch(corrected_cotangent_tile=(1, 8, 64), chunk=4),
+                               Launch(corrected_cotangent_tile=(2, 8, 32), chunk=2))
 
 
 def _check_launch(launch: Launch) -> None:
     """Tiles of powers of two (Triton's tensors must be, and the shared tile-rounded
-    shape of the reverse-mode kernels is a multiple of every tile only then), and
-    powers of two for ``num_warps`` and ``vector``."""
+    shape of the reverse-mode kernels is a multiple of every tile only then), powers
+    of two for ``num_warps`` and ``vector``, and a positive ``chunk``."""
     def power_of_two(n):
         return isinstance(n, int) and n >= 1 and n & (n - 1) == 0
 
@@ -155,6 +183,9 @@ def _check_launch(launch: Launch) -> None:
             and power_of_two(launch.num_warps) and power_of_two(launch.vector)):
         raise ValueError(f"volshade._lao_pallas: {launch} needs tiles of three powers of "
                          f"two and a power-of-two `num_warps` and `vector`.")
+    if launch.chunk is not None and not (isinstance(launch.chunk, int) and launch.chunk >= 1):
+        raise ValueError(f"volshade._lao_pallas: {launch} needs a `chunk` of at least one "
+                         f"sample, or None for about sqrt(samples).")
 
 
 def _tiling(shape, tile):
@@ -413,7 +444,7 @@ def _backward(alpha, directions, weights, radius, offset, cotangent, *, pad, sam
     cotangent_tile = launch.corrected_cotangent_tile if correction else launch.cotangent_tile
     _, _, out_shape = _tiling(shape, tuple(
         max(a, b) for a, b in zip(launch.tile, cotangent_tile, strict=True)))
-    n_chunks, chunk = _chunking(samples - 1)
+    n_chunks, chunk = _chunking(samples - 1, launch.chunk)
     source = _copies(alpha, pad, out_shape, launch.vector)
     ct = jnp.pad(cotangent, tuple((0, o - s) for o, s in zip(out_shape, shape, strict=True)))
     halo = tuple(o + 2 * p for o, p in zip(out_shape, pad, strict=True))

@@ -240,11 +240,14 @@ def _add_trilinear_shifted_adjoint(accumulator, cotangent, pad, offset, directio
     return lax.dynamic_update_slice(accumulator, current + blended, start)
 
 
-def _chunking(n_samples: int) -> tuple[int, int]:
-    """``(n_chunks, chunk)`` with ``n_chunks * chunk >= n_samples`` and chunk about sqrt."""
+def _chunking(n_samples: int, longest: int | None = None) -> tuple[int, int]:
+    """``(n_chunks, chunk)`` with ``n_chunks * chunk >= n_samples``, the chunks as even
+    as they can be and no longer than ``longest`` samples (default: about the square
+    root of ``n_samples``, which balances the chunk starts kept against a chunk's
+    samples)."""
     if n_samples <= 0:
         return 0, 0
-    chunk = math.ceil(math.sqrt(n_samples))
+    chunk = math.ceil(math.sqrt(n_samples)) if longest is None else min(longest, n_samples)
     n_chunks = math.ceil(n_samples / chunk)
     return n_chunks, math.ceil(n_samples / n_chunks)
 
