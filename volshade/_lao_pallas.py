@@ -133,7 +133,7 @@ class Launch(NamedTuple):
     dropped too: the instruction count does not bound these kernels.
 
     Shorter reverse-mode chunks (``chunk``), in that sm_90a build (static, not timed;
-    ``python -m benchmarks.run pallas_sass``), for the cotangent kernel; warps that
+    ``docs/results/pallas_sass_sm90a.json``), for the cotangent kernel; warps that
     fit on a multiprocessor by registers in brackets: without opacity correction,
     tile ``(2, 8, 64)`` takes 255 registers at the default chunk of 7 samples (8
     warps), 151 at chunk 3 (12) and 87 at chunk 2 (20), for 59, 68 and 74
