@@ -76,11 +76,13 @@ def test_fit_to_several_views_with_rgb_targets_weights_and_an_array_parameter():
                                atol=1e-6)
     np.testing.assert_allclose(float(result.values["phong.ambient"]), 0.5, atol=1e-6)
     # a fit of the same structure (another start) reuses the compiled solver, also when
-    # a number is set in the scene as a Python float (jit would hold it static)
+    # a number is set in the scene as a Python float or int (jit would hold it static)
     compiled = optx.least_squares._cached._cache_size(), _solve._cached._cache_size()
-    again = vs.fit(eqx.tree_at(lambda s: (s.background, s.phong.ambient, s.phong.diffuse),
+    again = vs.fit(eqx.tree_at(lambda s: (s.background, s.phong.ambient, s.phong.diffuse,
+                                          s.phong.shininess),
                                start, (jnp.full(3, 0.3), jnp.asarray(0.7),
-                                       float(start.phong.diffuse))),
+                                       float(start.phong.diffuse),
+                                       int(start.phong.shininess))),
                    cams, targets, weights=weights,
                    params={"background": (0.0, 1.0), "phong.ambient": None})
     assert (optx.least_squares._cached._cache_size(), _solve._cached._cache_size()) == compiled
@@ -372,7 +374,10 @@ def _bad_call(**change):
      ValueError, "2 cameras but 1 targets"),
     (dict(target=jnp.zeros((4, 5, 4))), ValueError, r"must have shape \(4, 4, 4\)"),
     (dict(target=np.zeros((4, 4, 4), np.uint8)), TypeError, "integer dtype uint8.*img_as_float"),
-    (dict(weights=jnp.ones((3, 3))), ValueError, "`weights` must have the target's shape"),
+    (dict(weights=jnp.ones((3, 3))), ValueError, r"must have the image shape \(4, 4\)"),
+    # found by a review: a (1, 4) meant for the channels was read as a row of pixels
+    (dict(weights=jnp.ones((1, 4))), ValueError, r"to weigh channels give shape \(4,\)"),
+    (dict(weights=jnp.ones((2, 4, 4))), ValueError, "`weights` must have the target's shape"),
     (dict(weights=-jnp.ones((4, 4))), ValueError, "finite and >= 0"),
     (dict(weights=jnp.zeros((4, 4))), ValueError, "all 0"),
     (dict(camera=[vs.Camera.orbit(image_shape=(4, 4))] * 2, target=[jnp.zeros((4, 4, 4))] * 2,

@@ -340,6 +340,13 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
         tgt = _checks.finite(tgt, "target", _WHERE)
         if w is not None:
             w = _checks.as_float_array(w, "weights", _WHERE)
+            # a 2-D array is a weight per pixel: of another shape it could as well be
+            # meant to broadcast over the channels, so it is refused, not guessed at
+            if w.ndim == 2 and w.shape != tuple(cam.image_shape):
+                raise ValueError(f"{_WHERE}: 2-D `weights` weigh pixels and must have the "
+                                 f"image shape {tuple(cam.image_shape)}, got "
+                                 f"{tuple(w.shape)}; to weigh channels give shape "
+                                 f"({tgt.shape[-1]},), or (1, 1, {tgt.shape[-1]}).")
             try:
                 w = jnp.broadcast_to(w if w.ndim != 2 else w[..., None], tgt.shape)
             except ValueError as err:
@@ -523,9 +530,10 @@ def fit(
         solver: an ``optimistix`` least-squares solver or minimiser (e.g.
             ``optx.BFGS``); by default ``vs.GaussNewtonLineSearch`` with
             ``rtol = sqrt(eps)`` and ``atol = eps`` of the render's dtype.
-        weights: optional weights $w \ge 0$ for each camera: broadcastable to the
-            target's shape (``(4,)`` weighs the channels), or of its image shape
-            ``(H, W)`` (e.g. a mask of the pixels that matter). For several cameras,
+        weights: optional weights $w \ge 0$ for each camera: of its image shape
+            ``(H, W)`` (e.g. a mask of the pixels that matter; the only 2-D shape
+            taken), or broadcastable to the target's shape (``(4,)`` weighs the
+            channels). For several cameras,
             a sequence with one entry per camera (or a stack along a leading axis):
             a list of numbers weighs whole views, so with four cameras
             ``[1, 1, 1, 0.5]`` halves the last view; to weigh the channels of every
@@ -580,9 +588,11 @@ def fit(
     for leaf, path in zip(leaves, named, strict=True):
         x = _checks.float_leaf(leaf, path, _WHERE)
         initial.append(jnp.array(x, dtype=x.dtype))
-    # numbers set with eqx.tree_at as arrays: jit would hold a Python float as static,
-    # and compile the solver again for every other value
-    scene = jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float) else x, scene)
+    # numbers set with eqx.tree_at (an int as the float a constructor would make of it)
+    # as arrays: jit would hold a Python number as static, and compile the solver again
+    # for every other value
+    scene = jax.tree.map(lambda x: jnp.asarray(float(x)) if isinstance(x, float | int)
+                         and not isinstance(x, bool) else x, scene)
     problem = _Problem(scene=_placed(scene, where, initial),
                        cameras=tuple(c for c, _, _ in views),
                        targets=tuple(t for _, t, _ in views),
