@@ -366,6 +366,7 @@ def _bad_call(**change):
     (dict(params={"lao.radius": (2.0, 1.0)}), ValueError, "low < high"),
     (dict(params={"lao.radius": (0.0, float("inf"))}), ValueError, "finite numbers or None"),
     (dict(params={"lao.radius": (0.0,)}), ValueError, "a pair"),
+    (dict(params={"lao.radius": (True, 50.0)}), TypeError, "must be numbers or None"),
     (dict(params={"lao.radius": (20.0, 30.0)}), ValueError, "strictly inside its bounds"),
     (dict(camera=[]), TypeError, "non-empty sequence"),
     (dict(camera=[vs.Camera.orbit(image_shape=(4, 4))] * 2), ValueError,
