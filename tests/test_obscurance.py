@@ -427,6 +427,25 @@ def test_half_precision_density_sums_in_float32(dtype):
 
 
 @pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])
+def test_half_precision_density_keeps_the_colours_given(dtype):
+    # found by a review: colours and ambient were cast to the density's dtype before
+    # their [0, 1] check and the float32 sum, so 1.003 passed as 1 and every colour lost
+    # digits; the same (rounded) densities in float32 differ only by the output's rounding
+    vol = jnp.asarray(random_volume((8, 8, 8), 7), dtype)
+    colors = np.random.default_rng(8).random((8, 8, 8, 3))
+    ambient = (0.9, 0.8, 0.7)
+    got = obscurance(vol, directions=DIRS12, d_max=4.0, colors=colors, ambient=ambient)
+    assert got.dtype == dtype
+    want = obscurance(vol.astype(jnp.float32), directions=DIRS12, d_max=4.0,
+                      colors=colors.astype(np.float32), ambient=ambient)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want.astype(dtype)))
+    for kwargs in (dict(colors=np.full((8, 8, 8, 3), 1.003)),
+                   dict(colors=colors, ambient=(1.003, 1.0, 1.0))):
+        with pytest.raises(ValueError, match="must lie in"):
+            obscurance(vol, directions=DIRS12, d_max=4.0, **kwargs)
+
+
+@pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])
 def test_half_precision_density_keeps_d_max(dtype):
     # found by a review: d_max was cast to the density's dtype, so in bfloat16 19.06 became
     # 19.0 and missed an occluder 11 sqrt(3) = 19.05 voxels away, and in float16 1e5 was

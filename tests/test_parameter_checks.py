@@ -151,6 +151,11 @@ def test_nested_lists_become_arrays():
      "obscurance: `d_max` must be a real number"),
     (lambda: vs.obscurance(DENSITY, directions=np.eye(3) * (1 + 1j), d_max=4.0), TypeError,
      "obscurance: `directions` must be real"),
+    # found by a review: converted to float64, strings parsed and bools passed as 1
+    (lambda: vs.obscurance(DENSITY, directions=[["1", "0", "0"]], d_max=4.0), TypeError,
+     r"obscurance: `directions` must be an \(L, 3\) array of real numbers, got dtype <U1"),
+    (lambda: vs.viewpoint_saliency(DENSITY, DENSITY, [[True, False, False]]), TypeError,
+     "viewpoint_saliency: `viewpoints` must be an .* real numbers, got dtype bool"),
     (lambda: vs.Scene(volume=VOL, transfer=TF, background=None), TypeError,
      "volshade.Scene: `background` must be a real number"),
     (lambda: vs.LocalAmbientOcclusion("3"), TypeError, "`radius` must be a real number"),

@@ -147,8 +147,7 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     if directions is None:
         raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, got None.")
     try:
-        complex_numbers = np.iscomplexobj(directions)
-        dirs = np.asarray(directions, dtype=None if complex_numbers else np.float64)
+        given = np.asarray(directions)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError) as err:
         raise TypeError(
             f"{where}: `{name}` must be concrete (numpy or a JAX array outside `jit`), not "
@@ -160,9 +159,15 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     except (TypeError, ValueError) as err:
         raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, "
                         f"got {type(directions).__name__}.") from err
-    if complex_numbers:  # converted, they would have lost their imaginary part
+    if np.iscomplexobj(given):  # converted, they would have lost their imaginary part
         raise TypeError(f"{where}: `{name}` must be real (L, 3) directions, got complex "
                         f"numbers.")
+    # converted to float64, a string would parse and a bool pass as 1
+    if given.size and not (jnp.issubdtype(given.dtype, jnp.floating)
+                           or jnp.issubdtype(given.dtype, jnp.integer)):
+        raise TypeError(f"{where}: `{name}` must be an (L, 3) array of real numbers, got "
+                        f"dtype {given.dtype}.")
+    dirs = given.astype(np.float64)
     if dirs.ndim == 0:
         raise TypeError(
             f"{where}: `{name}` must be an (L, 3) array of directions, got the number "
@@ -583,26 +588,30 @@ def obscurance(
     """
     where = "volshade.obscurance.obscurance"
     density = _checks.volume(density, "density", where)
-    dtype = density.dtype
     rho_fn = _rho_fn(rho, where)
     dirs = _direction_array(directions, "directions", where)
-    # in the dtype of the distances (_obscurance): a half-precision d_max would be
-    # rounded (bfloat16: 19.06 -> 19.0) or overflow (float16: 1e5)
-    d_max = _d_max(d_max, _checks.at_least_float32(density).dtype, where)
+    # in the dtype of the distances and the sum (_obscurance): a half-precision d_max
+    # would be rounded (bfloat16: 19.06 -> 19.0) or overflow (float16: 1e5)
+    work = _checks.at_least_float32(density).dtype
+    d_max = _d_max(d_max, work, where)
     bleeding = colors is not None
     if bleeding:
-        colors = _checks.as_float_array(colors, "colors", where).astype(dtype)
+        # checked as given, then in the sum's dtype: rounded to a half-precision
+        # density's dtype first, 1.003 would pass as 1 and every colour lose digits
+        colors = _checks.as_float_array(colors, "colors", where)
         if colors.shape != (*density.shape, 3):
             raise ValueError(f"{where}: `colors` must have shape {(*density.shape, 3)} "
                              f"(D, H, W, RGB) to match `density`, got {colors.shape}.")
         reflectances = "(RGB reflectances); rescale it"
-        colors = _checks.finite(colors, "colors", where, unit_range=True, hint=reflectances)
+        colors = _checks.finite(colors, "colors", where, unit_range=True,
+                                hint=reflectances).astype(work)
         ambient = (1.0, 1.0, 1.0) if ambient is None else ambient
-        ambient = _checks.as_float_array(ambient, "ambient", where).astype(dtype)
+        ambient = _checks.as_float_array(ambient, "ambient", where)
         if ambient.shape != (3,):
             raise ValueError(f"{where}: `ambient` must be an RGB triple, shape (3,), got "
                              f"{ambient.shape}.")
-        ambient = _checks.finite(ambient, "ambient", where, unit_range=True, hint=reflectances)
+        ambient = _checks.finite(ambient, "ambient", where, unit_range=True,
+                                 hint=reflectances).astype(work)
     elif ambient is not None:
         raise ValueError(f"{where}: `ambient` is the colour of unoccluded directions for "
                          f"colour bleeding and needs `colors`; pass `colors` or drop it.")
