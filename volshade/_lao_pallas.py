@@ -141,8 +141,10 @@ class Launch(NamedTuple):
     (12) and 63 instructions; with correction, ``(1, 8, 64)`` at chunk 4 253
     registers without a spill (8) and 179 instructions against the default's 222,
     and ``(2, 8, 32)`` at chunk 2 149 registers (12) and 189 instructions. Each chunk
-    costs the adjoint and the suffix carry a volume read and written, so shorter
-    chunks trade those for occupancy: ``GRADIENT_LAUNCHES`` and
+    costs the adjoint and the suffix carry a volume read and written, and the adjoint
+    kernel's per-chunk work shows too (38 instructions per voxel and sample at chunks
+    of 7 and 5, 50-53 at 4, 3 and 2), so shorter chunks trade those for occupancy:
+    ``GRADIENT_LAUNCHES`` and
     ``CORRECTED_GRADIENT_LAUNCHES`` are the launches the GPU benchmark times to
     decide.
     """
