@@ -475,6 +475,20 @@ def test_focus_errors_and_dtype():
         == jnp.float32
 
 
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_focus_radius_is_not_rounded_to_a_half_precision_output(dtype):
+    # found by a review: the radius was cast to the output dtype before the float32
+    # geometry, so 1e-8 became 0 in float16 (a NaN weight at the centre) and 259 became
+    # 260 in bfloat16 (one pixel too many inside)
+    tiny = focus_weights((3, 3), center=(1.0, 1.0), radius=1e-8, dtype=dtype)
+    np.testing.assert_array_equal(np.asarray(tiny, np.float32),
+                                  np.asarray(focus_weights((3, 3), center=(1.0, 1.0),
+                                                           radius=1e-8), np.float32))
+    wide = focus_weights((1, 300), center=(0.0, 0.0), radius=259.0, kind="circular",
+                         dtype=dtype)
+    assert float(jnp.sum(wide.astype(jnp.float32))) == 260.0  # columns 0 .. 259
+
+
 def test_background_importance_no_background_and_weight_off():
     none = Importance(global_weight=2.0, background=-jnp.inf)
     assert float(none.background_importance()) == -np.inf

@@ -151,6 +151,26 @@ def test_nested_lists_become_arrays():
      "obscurance: `d_max` must be a real number"),
     (lambda: vs.obscurance(DENSITY, directions=np.eye(3) * (1 + 1j), d_max=4.0), TypeError,
      "obscurance: `directions` must be real"),
+    # found by a review: march rendered NaN where an Importance leaf set with tree_at was NaN
+    (lambda: march(VOL, TF, CAM, composition="importance", importance=eqx.tree_at(
+        lambda i: i.intensity, vs.Importance(), jnp.nan)), ValueError,
+     "render: `intensity` must be finite"),
+    # found by a review: bools passed as 0 or 1, also beside numbers (NumPy promotes them),
+    # and an integer dtype truncated every weight and opacity to 0
+    (lambda: vs.focus_weights((3, 3), center=(1.0, 1.0), radius=True), TypeError,
+     "focus_weights: `radius` must be a number or numbers, got a bool"),
+    (lambda: vs.focus_weights((3, 3), center=(1.0, 1.0), radius=1.0, dtype=jnp.int32),
+     TypeError, "focus_weights: `dtype` must be a floating dtype, got int32"),
+    (lambda: march(VOL, TF, CAM, background=(True, False, True)), TypeError,
+     "render: `background` must be a number or numbers, got a bool"),
+    (lambda: march(VOL, TF, CAM, spacing=(True, 1, 1)), TypeError,
+     r"render: `spacing` must be a number or 3 numbers"),
+    (lambda: TF.opacity(VOL, step=True), TypeError, "opacity: `step` must be a number"),
+    (lambda: vs.TransferFunction.from_points([(0.0, 0, 0, 0, False), (1.0, 1, 1, 1, True)]),
+     TypeError, "from_points: `points` must be rows of 5 real numbers .* got a bool"),
+    (lambda: vs.TransferFunction.from_points([(0.0, 0, 0, 0, 0), (1.0, 1, 1, 1, 1)],
+                                             dtype=jnp.int32), TypeError,
+     "from_points: `dtype` must be a floating dtype, got int32"),
     # found by a review: converted to float64, strings parsed and bools passed as 1
     (lambda: vs.obscurance(DENSITY, directions=[["1", "0", "0"]], d_max=4.0), TypeError,
      r"obscurance: `directions` must be an \(L, 3\) array of real numbers, got dtype <U1"),

@@ -36,6 +36,25 @@ def as_float_array(x: Any, name: str, where: str) -> Array:
     )
 
 
+def holds_bool(x: Any) -> bool:
+    """Whether ``x`` is a bool, a bool array, or a (nested) sequence holding a bool (which
+    NumPy would promote with the numbers beside it)."""
+    if isinstance(x, bool | np.bool_):
+        return True
+    if isinstance(x, list | tuple):
+        return any(holds_bool(v) for v in x)
+    return getattr(x, "dtype", None) == np.bool_
+
+
+def numbers(x: Any, name: str, where: str) -> Array:
+    """:func:`as_float_array` for a parameter: a bool, or a sequence holding one, is
+    refused, not taken as 0 or 1 (data such as a mask keeps :func:`as_float_array`)."""
+    if holds_bool(x):
+        raise TypeError(f"{where}: `{name}` must be a number or numbers, got a bool in "
+                        f"{x!r:.80}.")
+    return as_float_array(x, name, where)
+
+
 def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
     """A parameter leaf as an array of a floating dtype. An int (``d_max=16``,
     ``fov=30``) would otherwise stay an integer leaf, which ``jax.grad`` refuses and
@@ -150,7 +169,7 @@ def flag(value: Any, name: str, where: str) -> bool:
 def scalar(x: Any, name: str, where: str) -> Array:
     """A floating scalar argument (trace-time shape check); a bool is refused, not taken
     as 0 or 1."""
-    if isinstance(x, bool | np.bool_) or getattr(x, "dtype", None) == np.bool_:
+    if holds_bool(x):
         raise TypeError(f"{where}: `{name}` must be a number, got the bool {x!r}.")
     arr = as_float_array(x, name, where)
     if arr.ndim != 0:
@@ -338,7 +357,8 @@ def spacing(value: Any, where: str) -> tuple[float, float, float]:
         raise TypeError(f"{where}: `spacing` is static (it sets kernels and sample "
                         f"positions) and cannot be traced; close over it instead of passing "
                         f"it as a `jit` argument.")
-    if np.asarray(value).dtype.kind not in "iuf":  # a string would parse, a bool pass as 1
+    # a string would parse, a bool pass as 1 (also beside numbers, which NumPy promotes)
+    if holds_bool(value) or np.asarray(value).dtype.kind not in "iuf":
         raise TypeError(f"{where}: `spacing` must be a number or 3 numbers (d, h, w) in mm, "
                         f"got {value!r}.")
     vals = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 \

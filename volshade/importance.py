@@ -245,7 +245,7 @@ def silhouetteness(
     where = "volshade.silhouetteness"
     n, v = (_feature(x, k, where) for x, k in ((normal, "normal"), (view, "view")))
     m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
-    exponent, start, end = (_checks.as_float_array(x, k, where) for x, k in
+    exponent, start, end = (_checks.numbers(x, k, where) for x, k in
                             ((exponent, "exponent"), (start, "start"), (end, "end")))
     xp, a, b = _checks.for_check(start, end)
     m_g = _checks.refuse(m_g, [
@@ -294,7 +294,7 @@ def lighting_importance(
     n, v, l = (_feature(x, k, where) for x, k in  # noqa: E741
                ((normal, "normal"), (view, "view"), (light, "light")))
     m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
-    exponents = {k: _checks.as_float_array(x, k, where)
+    exponents = {k: _checks.numbers(x, k, where)
                  for x, k in ((specular_exponent, "specular_exponent"),
                               (diffuse_exponent, "diffuse_exponent"),
                               (gradient_exponent, "gradient_exponent"))}
@@ -557,14 +557,14 @@ def focus_weights(
     if not isinstance(image_shape, tuple | list) or len(image_shape) != 2:
         raise ValueError(f"{where}: `image_shape` must be (H, W), got {image_shape!r}.")
     h, w = (_checks.positive_int(s, "image_shape", where) for s in image_shape)
-    center = _checks.as_float_array(center, "center", where)
+    center = _checks.numbers(center, "center", where)
     if center.shape != (2,):
         raise ValueError(f"{where}: `center` must be (row, column), got shape {center.shape}.")
     center = _checks.finite(center, "center", where)
-    radius = _checks.as_float_array(radius, "radius", where)
+    radius = _checks.numbers(radius, "radius", where)
     if radius.ndim != 0:
         raise ValueError(f"{where}: `radius` must be a scalar (pixels), got shape {radius.shape}.")
-    inside, outside = (_checks.as_float_array(x, name, where)
+    inside, outside = (_checks.numbers(x, name, where)
                        for x, name in ((inside, "inside"), (outside, "outside")))
     for x, name in ((inside, "inside"), (outside, "outside")):
         if x.ndim != 0:
@@ -575,9 +575,13 @@ def focus_weights(
     outside = _checks.finite(outside, "outside", where)
     if dtype is None:
         dtype = jnp.result_type(center, radius, inside, outside)
-    radius = _checks.refuse(radius.astype(dtype), [(_checks.not_positive(radius),
-                                                    "`radius` must be a finite number > 0 "
-                                                    "pixels.")], where)
+    if not jnp.issubdtype(dtype, jnp.floating):  # an integer dtype would truncate weights
+        raise TypeError(f"{where}: `dtype` must be a floating dtype, got {jnp.dtype(dtype)}.")
+    # in the geometry's dtype (_focus_weights): rounded to a half-precision output dtype,
+    # a radius of 1e-8 would become 0
+    radius = _checks.refuse(radius.astype(jnp.promote_types(dtype, jnp.float32)),
+                            [(_checks.not_positive(radius),
+                              "`radius` must be a finite number > 0 pixels.")], where)
     return _focus_weights(fn, (h, w), jnp.dtype(dtype), center, radius, inside, outside)
 
 

@@ -203,7 +203,7 @@ def medium(
         raise TypeError(f"{where}: `transfer` must be a volshade.TransferFunction, got "
                         f"{type(transfer).__name__}.")
     transfer, volume = transfer._checked(volume, where)
-    background = _checks.as_float_array(background, "background", where).astype(dtype)
+    background = _checks.numbers(background, "background", where).astype(dtype)
     if background.shape != (3,):
         raise ValueError(f"{where}: `background` must be an RGB triple, shape (3,), got "
                          f"{background.shape}.")
@@ -218,8 +218,8 @@ def medium(
     return Medium(
         volume=volume, transfer=transfer, spacing=spacing, step=step, shader=shader,
         compositor=comp, phong=phong, ambient=ambient, opacity_scale=opacity_scale,
-        importance=(Importance() if importance is None else importance.checked())
-        if measured else None,
+        importance=(Importance() if importance is None else _checks.refuse(
+            importance.checked(), importance._non_finite(), where)) if measured else None,
         background=background, gradient=gradient, magnitude=magnitude,
         classified=classified)
 

@@ -43,7 +43,7 @@ def _step(step: Any, where: str, shape: tuple[int, ...]) -> Array | None:
     or one per value (broadcasting to the volume's ``shape``)."""
     if step is None:
         return None
-    step = _checks.as_float_array(step, "step", where)
+    step = _checks.numbers(step, "step", where)
     if not _checks.broadcasts(step.shape, shape):
         raise ValueError(f"{where}: `step` must be one length or broadcast to the volume's "
                          f"shape {shape}, got shape {step.shape}.")
@@ -169,9 +169,11 @@ class TransferFunction(eqx.Module):
             raise ValueError(f"{where}: `points` must be rows (intensity, r, g, b, opacity) "
                              f"of 5 numbers each, got {points!r:.80}.") from err
         # converted, a complex number would lose its imaginary part, a bool pass as 0/1
-        if table.dtype.kind not in "iuf":
+        # (also beside numbers, which NumPy promotes)
+        if _checks.holds_bool(points) or table.dtype.kind not in "iuf":
+            got = "a bool" if _checks.holds_bool(points) else f"{table.dtype} values"
             raise TypeError(f"{where}: `points` must be rows of 5 real numbers (intensity, "
-                            f"r, g, b, opacity), got {table.dtype} values.")
+                            f"r, g, b, opacity), got {got}.")
         table = table.astype(float)
         if table.ndim != 2 or table.shape[1] != 5 or table.shape[0] < 1:
             raise ValueError(f"{where}: `points` must be rows (intensity, r, g, b, opacity), "
@@ -179,6 +181,9 @@ class TransferFunction(eqx.Module):
         if not np.all(np.isfinite(table)):
             raise ValueError(f"{where}: `points` contains NaN or inf.")
         dtype = jnp.result_type(float) if dtype is None else dtype
+        if not jnp.issubdtype(dtype, jnp.floating):  # an integer dtype would truncate
+            raise TypeError(f"{where}: `dtype` must be a floating dtype, got "
+                            f"{jnp.dtype(dtype)}.")
         return cls(jnp.asarray(table[:, 0], dtype), jnp.asarray(table[:, 1:4], dtype),
                    jnp.asarray(table[:, 4], dtype), step0=step0)
 
