@@ -190,6 +190,48 @@ def test_half_precision_clips_are_measured_in_float32():
         np.testing.assert_array_equal(np.asarray(fn(half)), np.asarray(fn(exact)))
 
 
+def test_half_precision_leaves_keep_a_python_size_and_measure_points_in_float32():
+    # found by a review: beside float16 leaves a Python-number radius was rounded to
+    # float16 before its check and its use (1.9996 -> 2.0: 33 voxels removed, not 27;
+    # 70000 -> inf, refused as not finite), and signed_distance of float16 points
+    # computed in float16 (0.0 at a voxel the mask keeps)
+    f16 = jnp.float16
+    half = vs.SphereClip(center=jnp.full(3, 4, f16), radius=1.9996,
+                         rotation=jnp.eye(3, dtype=f16))
+    exact = vs.SphereClip(center=jnp.full(3, 4.0, jnp.float32), radius=1.9996)
+    np.testing.assert_array_equal(np.asarray(vs.clip_mask((9, 9, 9), half)),
+                                  np.asarray(vs.clip_mask((9, 9, 9), exact)))
+    assert int(vs.clip_mask((9, 9, 9), half).sum()) == 27
+    far = vs.SphereClip(center=jnp.full(3, 4, f16), radius=70000.0,
+                        rotation=jnp.eye(3, dtype=f16))
+    assert bool(vs.clip_mask((3, 3, 3), far).all())
+    odd = vs.SphereClip(center=jnp.asarray([2.197, 2.87, 6.695], f16),
+                        radius=jnp.asarray(3.588, f16), rotation=jnp.eye(3, dtype=f16))
+    phi = odd.signed_distance(jnp.asarray([5.0, 5.0, 6.0], f16))
+    assert phi.dtype == jnp.float32
+    assert (float(phi) <= 0) == bool(vs.clip_mask((8, 8, 8), odd)[5, 5, 6])
+
+
+def test_leaves_that_are_not_floats_are_refused():
+    # found by a review: a bool beside numbers passed as 1, and leaves of another dtype
+    # set with eqx.tree_at were never checked (a bool radius ran as 1, an integer
+    # rotation failed deep inside)
+    with pytest.raises(TypeError, match="`center` must be a real number"):
+        vs.SphereClip(center=(True, 4.0, 4.0), radius=2.0)
+    with pytest.raises(TypeError, match="`half_size` must be a real number"):
+        vs.BoxClip(center=(4.0, 4.0, 4.0), half_size=(True, 2.0, 2.0))
+    sphere = vs.SphereClip(center=(4.0, 4.0, 4.0), radius=2.0)
+    plane = vs.HalfSpaceClip(center=(4.0, 0.0, 0.0))
+    for clip, name in ((eqx.tree_at(lambda c: c.radius, sphere, jnp.asarray(True)), "radius"),
+                       (eqx.tree_at(lambda c: c.rotation, plane, jnp.eye(3, dtype=jnp.int32)),
+                        "rotation")):
+        for use in (lambda c: vs.clip_mask((8, 8, 8), c),
+                    lambda c: vs.affected_mask((8, 8, 8), c, radius=2.0),
+                    lambda c: c.signed_distance(jnp.zeros(3))):
+            with pytest.raises(TypeError, match=f"`{name}` must hold floating-point numbers"):
+                use(clip)
+
+
 def test_affected_mask_covers_the_rounding_of_large_float32_clips():
     # a torus of major radius 1e7 whose tube passes through a small volume: float32
     # rounds its phi by up to half a voxel there (the ulp of 1e7 is 1), so a margin

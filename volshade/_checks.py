@@ -61,13 +61,14 @@ def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
     ``eqx.filter_grad`` silently skips; real floating dtypes are kept as given.
     Anything else (a string, ``None``, a bool, a complex number) is refused, naming
     ``name``: a bool would pass as 0 or 1 and a complex number would render its real
-    part."""
+    part (also beside numbers, ``(True, 4.0, 4.0)``, which NumPy would promote)."""
     try:
         arr = jnp.asarray(x)
     except (TypeError, ValueError) as err:
         raise TypeError(f"{where}: `{name}` must be a real number or an array of them, "
                         f"got {x!r}.") from err
-    if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.integer)):
+    if holds_bool(x) or not (jnp.issubdtype(arr.dtype, jnp.floating)
+                             or jnp.issubdtype(arr.dtype, jnp.integer)):
         raise TypeError(f"{where}: `{name}` must be a real number or an array of them, "
                         f"got {x!r:.80} of dtype {arr.dtype}.")
     if not jnp.issubdtype(arr.dtype, jnp.floating):

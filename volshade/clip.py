@@ -129,7 +129,8 @@ class Clip(eqx.Module):
         if points.ndim < 1 or points.shape[-1] != 3:
             raise ValueError(f"{where}: `points` must have shape (..., 3) (d, h, w in voxels), "
                              f"got {points.shape}.")
-        clip = _checked(self)
+        clip = _widened(_checked(self))
+        points = points.astype(jnp.promote_types(points.dtype, clip.center.dtype))
         local = (points - _lead(clip.center, points)) @ clip.rotation
         return clip._local_distance(local[..., 0], local[..., 1], local[..., 2])
 
@@ -255,7 +256,15 @@ def _checked(clip: Clip) -> Clip:
     one clip (built with a batch axis, a clip is for vmap: its sizes would broadcast
     against the voxel grid)."""
     where = f"volshade.{type(clip).__name__}"
-    # leaves set with eqx.tree_at skip the constructor's shape checks
+    # leaves set with eqx.tree_at skip the constructor's dtype and shape checks: a bool
+    # would pass as 0 or 1, an integer rotation fail deep inside
+    for name in ("center", "rotation", *clip.sizes):
+        value = getattr(clip, name)
+        if _checks.holds_bool(value) or (eqx.is_array(value)
+                                         and not jnp.issubdtype(value.dtype, jnp.floating)):
+            raise TypeError(f"{where}: `{name}` must hold floating-point numbers, got "
+                            f"{getattr(value, 'dtype', type(value).__name__)}; set it to a "
+                            f"float array (or build the clip with its constructor).")
     for name, shape, what in (("center", (3,), "3 numbers (d, h, w) in voxels"),
                               ("rotation", (3, 3), "a 3x3 rotation matrix")):
         if jnp.shape(getattr(clip, name)) != shape:
@@ -283,12 +292,17 @@ def _voxel_distances(shape: tuple[int, int, int], clip: Clip) -> Array:
     return _grid_distances(shape, _checked(clip))
 
 
+def _widened(clip: Clip) -> Clip:
+    """``clip`` with its array leaves in float32 at least, the dtype it computes in."""
+    return jax.tree_util.tree_map(lambda x: _checks.at_least_float32(x) if eqx.is_array(x)
+                                  else x, clip)
+
+
 def _grid_distances(shape: tuple[int, int, int], clip: Clip) -> Array:
     r""":func:`_voxel_distances` of a checked clip. The local coordinates of the grid
     are sums of three broadcast 1-D terms, $\sum_k (x_k - c_k) R_{kj}$, so no
     ``(D, H, W, 3)`` array of points is built and multiplied."""
-    clip = jax.tree_util.tree_map(lambda x: _checks.at_least_float32(x) if eqx.is_array(x)
-                                  else x, clip)
+    clip = _widened(clip)
     offsets = [(jnp.arange(n, dtype=clip.center.dtype) - clip.center[k]).reshape(
         [n if a == k else 1 for a in range(3)]) for k, n in enumerate(shape)]
     local = [sum(offsets[k] * clip.rotation[k, j] for k in range(3)) for j in range(3)]
@@ -336,7 +350,9 @@ def _clip(clip: Clip, where: str) -> Clip:
     leaves = [x for x in jax.tree_util.tree_leaves(clip) if eqx.is_inexact_array(x)]
     if not leaves:  # every leaf replaced by a non-float (eqx.tree_at): _checked names it
         return clip
-    return _checks.strongly_typed(clip, jnp.result_type(*leaves))
+    # float32 at least, as the clip computes: a Python-number size beside float16 leaves
+    # would otherwise be rounded to float16 before its check and its use
+    return _checks.strongly_typed(clip, jnp.result_type(*leaves, jnp.float32))
 
 
 def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
