@@ -151,6 +151,17 @@ def test_nested_lists_become_arrays():
      "obscurance: `d_max` must be a real number"),
     (lambda: vs.obscurance(DENSITY, directions=np.eye(3) * (1 + 1j), d_max=4.0), TypeError,
      "obscurance: `directions` must be real"),
+    # found by a review: march ignored parameters it does not read (a Scene refuses them)
+    # and met objects of another type with an AttributeError
+    (lambda: march(VOL, TF, CAM, importance=vs.Importance(intensity=50.0)), ValueError,
+     "render: `importance` is read only with composition='importance'"),
+    (lambda: march(VOL, TF, CAM, phong=vs.Phong(ambient=0.9)), ValueError,
+     "render: `phong` is read only with shading='phong' or 'obscurance'"),
+    (lambda: march(VOL, TF, CAM, composition="importance", importance=1.0), TypeError,
+     "render: `importance` must be a volshade.Importance, got float"),
+    (lambda: march(VOL, TF, CAM, shading="phong", phong=1.0), TypeError,
+     "render: `phong` must be a volshade.Phong, got float"),
+    (lambda: march(VOL, TF, None), TypeError, "render: `camera` must be a volshade.Camera"),
     # found by a review: march rendered NaN where an Importance leaf set with tree_at was NaN
     (lambda: march(VOL, TF, CAM, composition="importance", importance=eqx.tree_at(
         lambda i: i.intensity, vs.Importance(), jnp.nan)), ValueError,

@@ -129,7 +129,10 @@ def march(
             outside [0, 1], a negative
             ``opacity_scale``, transfer-function control values out of order or
             outside [0, 1], or ``phong`` or ``importance`` values outside their
-            domains (raised when the data is seen: at run time for traced values).
+            domains (raised when the data is seen: at run time for traced values);
+            ``phong`` given to a shading that does not read it (``"none"``), or
+            ``importance`` or ``focus`` to standard compositing (they would be
+            ignored); a ``camera``, ``phong`` or ``importance`` of another type.
     """
     shared = medium(volume, transfer, spacing=spacing, step=step, shading=shading,
                     phong=phong, ambient=ambient, composition=composition,
@@ -209,6 +212,17 @@ def medium(
                          f"{background.shape}.")
     background = _checks.finite(background, "background", where)
     measured = composition == "importance"
+    # as a Scene does: parameters the render would not read are refused, or it would
+    # look as if they had no effect
+    for value, kind, used, name, wanted in (
+            (phong, Phong, shader.needs_gradient, "phong", "shading='phong' or 'obscurance'"),
+            (importance, Importance, measured, "importance", "composition='importance'")):
+        if value is not None and not isinstance(value, kind):
+            raise TypeError(f"{where}: `{name}` must be a volshade.{kind.__name__}, got "
+                            f"{type(value).__name__}.")
+        if value is not None and not used:
+            raise ValueError(f"{where}: `{name}` is read only with {wanted}; pass that, or "
+                             f"leave `{name}` out.")
     phong = Phong() if phong is None else phong
     if shader.needs_gradient:  # the lit shaders, which read the Phong coefficients
         phong = phong.checked()
@@ -254,6 +268,9 @@ def march_view(shared: Medium, camera: Camera, focus: Array | None = None
     :func:`medium` returns), with optional ``(H, W)`` ``focus`` weights; returns the
     ``(H, W, 4)`` image."""
     where = "volshade.render"
+    if not isinstance(camera, Camera):
+        raise TypeError(f"{where}: `camera` must be a volshade.Camera, got "
+                        f"{type(camera).__name__}.")
     dtype = shared.volume.dtype
     if focus is not None:
         focus = _checks.finite(_checks.as_float_array(focus, "focus", where).astype(dtype),
