@@ -162,6 +162,10 @@ def test_nested_lists_become_arrays():
     (lambda: march(VOL, TF, CAM, shading="phong", phong=1.0), TypeError,
      "render: `phong` must be a volshade.Phong, got float"),
     (lambda: march(VOL, TF, None), TypeError, "render: `camera` must be a volshade.Camera"),
+    (lambda: vs.sample_importance(None, intensity=jnp.ones(2)), TypeError,
+     "sample_importance: `params` must be a volshade.Importance, got NoneType"),
+    (lambda: vs.IntervalFeature(0.2, 0.4).opacity(VOL, None), TypeError,
+     "IntervalFeature.opacity: `base` must be a volshade.TransferFunction"),
     # found by a review: march rendered NaN where an Importance leaf set with tree_at was NaN
     (lambda: march(VOL, TF, CAM, composition="importance", importance=eqx.tree_at(
         lambda i: i.intensity, vs.Importance(), jnp.nan)), ValueError,

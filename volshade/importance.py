@@ -384,6 +384,9 @@ def sample_importance(
     scalars = {"intensity": intensity, "extinction": extinction,
                "gradient_magnitude": gradient_magnitude, "optical_depth": optical_depth}
     vectors = {"normal": normal, "view": view, "light": light}
+    if not isinstance(params, Importance):
+        raise TypeError(f"{where}: `params` must be a volshade.Importance, got "
+                        f"{type(params).__name__}.")
     params = _checks.refuse(params.checked(), params._non_finite(), where)
     scalars, vectors = ({k: _feature(v, k, where) for k, v in features.items() if v is not None}
                         for features in (scalars, vectors))

@@ -288,6 +288,9 @@ class IntervalFeature(eqx.Module):
     def opacity(self, volume: Array, base: TransferFunction, *,
                 step: float | Array | None = None) -> Array:
         """``base.opacity(volume, step=step)`` inside ``[low, high]``, 0 outside."""
+        if not isinstance(base, TransferFunction):
+            raise TypeError(f"volshade.IntervalFeature.opacity: `base` must be a "
+                            f"volshade.TransferFunction, got {type(base).__name__}.")
         volume = _checks.as_working_float(volume, "volume", "volshade.IntervalFeature.opacity")
         return self._select(volume, base.opacity(volume, step=step))
 
