@@ -535,11 +535,10 @@ def fit(
         weights: optional weights $w \ge 0$ for each camera: of its image shape
             ``(H, W)`` (e.g. a mask of the pixels that matter; the only 2-D shape
             taken), or broadcastable to the target's shape (``(4,)`` weighs the
-            channels). For several cameras,
-            a sequence with one entry per camera (or a stack along a leading axis):
-            a list of numbers weighs whole views, so with four cameras
-            ``[1, 1, 1, 0.5]`` halves the last view; to weigh the channels of every
-            view, give ``[w] * len(cameras)``.
+            channels). For several cameras, a sequence with one entry per camera
+            (or a stack along a leading axis): a list of numbers weighs whole
+            views, so with four cameras ``[1, 1, 1, 0.5]`` halves the last view; to
+            weigh the channels of every view, give ``[w] * len(cameras)``.
         max_steps: the solver's step limit.
         throw: raise when the solver fails (as optimistix does); with ``False``,
             check ``Fit.result``.
