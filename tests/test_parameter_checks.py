@@ -151,6 +151,23 @@ def test_nested_lists_become_arrays():
      "obscurance: `d_max` must be a real number"),
     (lambda: vs.obscurance(DENSITY, directions=np.eye(3) * (1 + 1j), d_max=4.0), TypeError,
      "obscurance: `directions` must be real"),
+    # found by a review: lao took bools as 0 or 1 (0-d bool arrays, beside numbers), the
+    # Module accepted weights lao refuses, and None or ragged directions ended in NumPy's
+    # error without the argument's name
+    (lambda: vs.lao(DENSITY, directions=4, radius=3.0, offset=np.array(False)), TypeError,
+     r"lao: `offset` must be a number \(voxels\), got array\(False\)"),
+    (lambda: vs.lao(DENSITY, directions=4, radius=3.0, weights=(True, 1.0, 1.0, 1.0)),
+     TypeError, "lao: `weights` must be a number or numbers, got a bool"),
+    (lambda: vs.lao(DENSITY, directions=[[True, 0, 0], [0, 1.0, 0]], radius=3.0), TypeError,
+     "lao: `directions` must hold numbers, got a bool"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, max_radius=np.array(True)), TypeError,
+     "`max_radius` must be a number"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, directions=4, weights=[-1.0, 1, 1, 1]), ValueError,
+     "LocalAmbientOcclusion: `weights` must be finite, >= 0 and not all zero"),
+    (lambda: vs.lao(DENSITY, directions=None, radius=3.0), TypeError,
+     r"lao: `directions` must be an \(L, 3\) array .* got NoneType"),
+    (lambda: vs.LocalAmbientOcclusion(3.0, directions=[[1, 0, 0], [1, 0]]), TypeError,
+     r"LocalAmbientOcclusion: `directions` must be an \(L, 3\) array .* got list"),
     # found by a review: march ignored parameters it does not read (a Scene refuses them)
     # and met objects of another type with an AttributeError
     (lambda: march(VOL, TF, CAM, importance=vs.Importance(intensity=50.0)), ValueError,

@@ -341,7 +341,7 @@ def positive_float(value: Any, name: str, where: str) -> float:
     if isinstance(value, jax.core.Tracer):
         raise TypeError(f"{where}: `{name}` is static (a Python number) and cannot be "
                         f"traced; close over it instead of passing it as a `jit` argument.")
-    if isinstance(value, bool | np.bool_ | str | bytes):  # float("0.5") would pass
+    if isinstance(value, str | bytes) or holds_bool(value):  # float("0.5") would pass
         raise TypeError(f"{where}: `{name}` must be a number, got {value!r}.")
     try:
         out = float(value)

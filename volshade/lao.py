@@ -631,10 +631,13 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
         directions = _directions.fibonacci(int(directions))
     try:
         dirs = jnp.asarray(directions)
-    except TypeError as err:
+    except (TypeError, ValueError) as err:  # ValueError: None, a ragged nested list
         raise TypeError(f"{where}: `directions` must be an (L, 3) array of unit vectors "
                         f"(e.g. `volshade.directions.icosphere(1)`) or an int L, "
                         f"got {type(directions).__name__}.") from err
+    if _checks.holds_bool(directions):  # a bool would pass as 0 or 1
+        raise TypeError(f"{where}: `directions` must hold numbers, got a bool in "
+                        f"{directions!r:.80}.")
     dirs = _checks.as_float_array(dirs, "directions", where)  # refuses complex numbers
     if dirs.ndim != 2 or dirs.shape[-1] != 3:
         raise ValueError(f"{where}: `directions` must have shape (L, 3) in (d, h, w) order, "
@@ -660,7 +663,7 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
 
 
 def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
-    if isinstance(value, bool | np.bool_ | str | bytes):
+    if isinstance(value, str | bytes) or _checks.holds_bool(value):
         raise TypeError(f"{where}: `{name}` must be a number (voxels), got {value!r}.")
     try:
         arr = _checks.as_float_array(value, name, where).astype(dtype)  # refuses complex
@@ -676,7 +679,7 @@ def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
 def _weights_array(weights, n_dirs: int, where: str, *, batch: bool = False) -> Array:
     """``weights`` as a float array, one per direction (trace-time shape check);
     ``batch``: leading batch axes allowed (a module to be vmapped)."""
-    weights = _checks.as_float_array(weights, "weights", where)
+    weights = _checks.numbers(weights, "weights", where)
     if weights.shape != (n_dirs,) and not (batch and weights.shape[-1:] == (n_dirs,)):
         raise ValueError(f"{where}: `weights` must have shape (L,) = ({n_dirs},), one "
                          f"per direction, got {tuple(weights.shape)}.")
@@ -1036,6 +1039,11 @@ class LocalAmbientOcclusion(eqx.Module):
         self.directions = jnp.asarray(directions)
         self.weights = (None if weights is None
                         else _weights_array(weights, n_dirs, where, batch=True))
+        if self.weights is not None:  # known values now, as lao() would at the first call
+            xp, w = _checks.for_check(self.weights)
+            _checks.refuse(self.weights, [
+                (~xp.all(xp.isfinite(w)) | xp.any(w < 0) | ~xp.all(xp.max(w, axis=-1) > 0),
+                 "`weights` must be finite, >= 0 and not all zero.")], where, traced=False)
         self.samples = _checks.positive_int(samples, "samples", where)
         self.opacity_correction = _checks.flag(opacity_correction, "opacity_correction", where)
         self.brick_size = (None if brick_size is None
