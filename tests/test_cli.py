@@ -1,3 +1,4 @@
+import os
 import pathlib
 import subprocess
 import sys
@@ -102,6 +103,20 @@ def test_cli_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "volshade: error: volshade.render: `scene.background` contains NaN" in err
     assert "Traceback" not in err and "EQX_ON_ERROR" not in err
+
+
+def test_an_image_past_the_index_range_is_an_error_not_a_traceback(tmp_path):
+    # found by a review: OverflowError's traceback. Run as a user runs it, in a process
+    # of its own without the suite's x64 (with 64-bit indices the render would try to
+    # allocate the image instead)
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    env.pop("XLA_FLAGS", None)
+    done = subprocess.run([sys.executable, "-m", "volshade", "render", "shells", "--out",
+                           str(tmp_path / "x.png"), "--size", "8", "--image", "3000000000"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert "volshade: error: a size is too large to index" in done.stderr
+    assert "Traceback" not in done.stderr
 
 
 class _Built(Exception):

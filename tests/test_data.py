@@ -253,6 +253,23 @@ def test_load_nifti_nan_is_refused(tmp_path):
         data.load_nifti(_write(tmp_path / "nan.nii", arr, np.eye(4)))
 
 
+def test_load_nifti_refuses_what_float32_cannot_hold_and_normalizes_huge_ranges(tmp_path):
+    # found by a review: 1e40 was checked finite in float64, then returned as inf; and
+    # normalising +-1.7e308 overflowed hi - lo (NaN)
+    arr = np.ones((3, 3, 3), np.float64)
+    arr[0, 0, 0] = 1e40
+    path = _write(tmp_path / "big.nii", arr, np.eye(4))
+    with pytest.raises(ValueError, match="beyond float32's range"):
+        data.load_nifti(path, normalize=False)
+    vol, _ = data.load_nifti(path, normalize=True)
+    assert float(vol.max()) == 1.0 and float(vol.min()) == 0.0
+    arr[1, 1, 1] = -1.7e308
+    arr[2, 2, 2] = 1.7e308
+    vol, _ = data.load_nifti(_write(tmp_path / "huge.nii", arr, np.eye(4)), normalize=True)
+    assert np.all(np.isfinite(vol)) and float(vol.max()) == 1.0 and float(vol.min()) == 0.0
+    np.testing.assert_allclose(float(vol[1, 1, 1]), 0.0)
+
+
 def test_load_nifti_downsample(tmp_path):
     arr = np.arange(4 * 6 * 8, dtype=np.float32).reshape(4, 6, 8)
     path = _write(tmp_path / "ds.nii", arr, np.diag([1.0, 2.0, 3.0, 1.0]))

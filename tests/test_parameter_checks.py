@@ -151,6 +151,26 @@ def test_nested_lists_become_arrays():
      "obscurance: `d_max` must be a real number"),
     (lambda: vs.obscurance(DENSITY, directions=np.eye(3) * (1 + 1j), d_max=4.0), TypeError,
      "obscurance: `directions` must be real"),
+    # found by a review: composite took bool backgrounds as 1 and rounded the background
+    # to half-precision samples before its check (-1e-8 passed as -0, 1e5 became inf)
+    (lambda: vs.composite(jnp.full((1, 2, 3), 0.5), jnp.full((1, 2), 0.5),
+                          background=(True, 0.5, 0.5)), TypeError,
+     "composite: `background` must be a number or numbers, got a bool"),
+    (lambda: vs.composite(jnp.full((1, 2, 3), 0.5), jnp.full((1, 2), 0.5),
+                          importance=jnp.ones((1, 2)), background_importance=True), TypeError,
+     "composite: `background_importance` must be a number or numbers, got a bool"),
+    (lambda: vs.composite(jnp.full((1, 2, 3), 0.5, jnp.float16),
+                          jnp.full((1, 2), 0.5, jnp.float16),
+                          background=np.asarray([-1e-8, 0.0, 0.0])), ValueError,
+     "composite: `background` .*negative"),
+    # found by a review: Phong leaves set with tree_at shaded a bool as 1, and a string or
+    # None failed inside JAX without the field's name
+    (lambda: march(VOL, TF, CAM, shading="phong",
+                   phong=eqx.tree_at(lambda p: p.ambient, vs.Phong(), True)), TypeError,
+     "volshade.Phong: `ambient` must be a real number, got True"),
+    (lambda: march(VOL, TF, CAM, shading="phong",
+                   phong=eqx.tree_at(lambda p: p.shininess, vs.Phong(), "x")), TypeError,
+     "volshade.Phong: `shininess` must be a real number, got 'x'"),
     # found by a review: lao took bools as 0 or 1 (0-d bool arrays, beside numbers), the
     # Module accepted weights lao refuses, and None or ragged directions ended in NumPy's
     # error without the argument's name

@@ -353,6 +353,10 @@ def main(argv: list[str] | None = None) -> int:
     except eqx.EquinoxRuntimeError as err:  # a run-time check (e.g. NaN in a parameter)
         print(f"volshade: error: {_check_message(err)}", file=sys.stderr)
         return 2
+    except OverflowError:  # a size past what an index can hold (--image 3000000000)
+        print("volshade: error: a size is too large to index (past 2^31); lower --size or "
+              "--image, or raise --downsample.", file=sys.stderr)
+        return 2
     except (MemoryError, jax.errors.JaxRuntimeError) as err:
         # NumPy's or XLA's allocation; other run-time errors are bugs, with a traceback
         if not isinstance(err, MemoryError) and "RESOURCE_EXHAUSTED" not in str(err):

@@ -798,9 +798,11 @@ def composite(
     if background is None:
         bg = jnp.zeros((*batch, 3), dtype)
     else:
-        bg = _checks.finite(_checks.as_float_array(background, "background", where).astype(dtype),
+        # checked as given, then cast: rounded to half-precision samples first, -1e-8
+        # would pass as -0 and 1e5 be refused as inf
+        bg = _checks.finite(_checks.numbers(background, "background", where),
                             "background", where, non_negative=True,
-                            hint="(an RGB colour; light is not negative)")
+                            hint="(an RGB colour; light is not negative)").astype(dtype)
         if bg.shape[-1:] != (3,) or not _checks.broadcasts(bg.shape, (*batch, 3)):
             raise ValueError(f"{where}: `background` must be an RGB colour that broadcasts to "
                              f"the rays, (..., 3) = {(*batch, 3)}, got {bg.shape}.")
@@ -814,7 +816,7 @@ def composite(
     if background_importance is None:
         bg_imp = jnp.full(batch, -jnp.inf, dtype)
     else:
-        bg_imp = _checks.as_float_array(background_importance, "background_importance", where)
+        bg_imp = _checks.numbers(background_importance, "background_importance", where)
         if not _checks.broadcasts(bg_imp.shape, batch):
             raise ValueError(f"{where}: `background_importance` must broadcast to the rays, "
                              f"(...) = {batch}, got {bg_imp.shape}.")

@@ -370,7 +370,8 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
         ValueError: the file is not an image nibabel can read (or is cut short), its
             voxels are not real numbers, the image is not 3-D
             (a 4-D image is accepted when its 4th dimension is 1), contains NaN or
-            inf, or ``downsample`` < 1.
+            inf, or (with ``normalize=False``) intensities beyond float32's range, or
+            ``downsample`` < 1.
         TypeError: ``normalize`` not ``True`` or ``False``.
 
     Example:
@@ -420,13 +421,18 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     zooms = tuple(float(z) for z in nibabel.affines.voxel_sizes(img.affine))
     spacing = (zooms[2], zooms[1], zooms[0])
     if normalize:
-        lo, hi = vol.min(), vol.max()
-        vol = (vol - lo) / (hi - lo) if hi > lo else np.zeros_like(vol)
+        # in halves: hi - lo of +-1.7e308 would overflow (halving is exact)
+        lo, hi = vol.min() / 2, vol.max() / 2
+        vol = (vol / 2 - lo) / (hi - lo) if hi > lo else np.zeros_like(vol)
     vol = _downsample(vol, factor)
     if normalize:
         vol = np.clip(vol, 0.0, 1.0)  # only float rounding of block means can leave [0, 1]
     spacing = tuple(s * factor for s in spacing)
-    return jnp.asarray(vol.astype(np.float32), dtype=jnp.float32), spacing  # type: ignore
+    out = vol.astype(np.float32)
+    if not np.all(np.isfinite(out)):  # finite in float64, beyond float32's range
+        raise ValueError(f"{where}: {str(path)!r} has intensities beyond float32's range "
+                         f"(+-3.4e38); load it with normalize=True, or rescale it.")
+    return jnp.asarray(out, dtype=jnp.float32), spacing  # type: ignore
 
 
 # ----------------------------------------------------------------------------------------------
