@@ -428,11 +428,11 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     if normalize:
         vol = np.clip(vol, 0.0, 1.0)  # only float rounding of block means can leave [0, 1]
     spacing = tuple(s * factor for s in spacing)
-    out = vol.astype(np.float32)
-    if not np.all(np.isfinite(out)):  # finite in float64, beyond float32's range
+    # finite in float64, but the cast would make it inf
+    if vol.size and np.max(np.abs(vol)) > np.finfo(np.float32).max:
         raise ValueError(f"{where}: {str(path)!r} has intensities beyond float32's range "
                          f"(+-3.4e38); load it with normalize=True, or rescale it.")
-    return jnp.asarray(out, dtype=jnp.float32), spacing  # type: ignore
+    return jnp.asarray(vol.astype(np.float32), dtype=jnp.float32), spacing  # type: ignore
 
 
 # ----------------------------------------------------------------------------------------------
