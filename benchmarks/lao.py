@@ -406,15 +406,11 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
         if forward_s is None:
             continue
         fn = loss(lambda al, rr, launch=launch: 1 - occlusion(launch)(al, rr) / samples)
-        try:
-            t_b = time_fn(fn, alpha, r, repeats=repeats)
-        except Exception as err:  # noqa: BLE001 - as above
-            report(rows, {"case": f"pallas forward+grad {launch}", "error": repr(err)[:300]})
+        median = _timed_gradient(rows, f"pallas forward+grad(alpha, radius) {launch}", fn,
+                                 alpha, r, repeats)
+        if median is None:
             continue
-        report(rows, {"case": f"pallas forward+grad(alpha, radius) {launch}",
-                      "median_s": t_b["median_s"],
-                      "compile_s": t_b["first_call_s"] - t_b["median_s"]})
-        ratios[f"pallas_forward_plus_grad_over_forward {launch}"] = t_b["median_s"] / forward_s
+        ratios[f"pallas_forward_plus_grad_over_forward {launch}"] = median / forward_s
         if launch == pallas.Launch():
             both = fn
         else:
@@ -457,17 +453,25 @@ def _pallas_corrected_gradients(occlusion, alpha, r, ratios, repeats) -> list[di
         fn = jax.jit(jax.value_and_grad(
             lambda al, rr, launch=launch: jnp.sum(occlusion(launch, correction=True)(al, rr)),
             (0, 1)))
-        try:
-            t = time_fn(fn, alpha, r, repeats=repeats)
-        except Exception as err:  # noqa: BLE001 - reported, as for the launches
-            report(out, {"case": f"pallas forward+grad, correction {launch}",
-                         "error": repr(err)[:300]})
-            continue
-        report(out, {"case": f"pallas forward+grad(alpha, radius), correction {launch}",
-                     "median_s": t["median_s"], "compile_s": t["first_call_s"] - t["median_s"]})
-        ratios[f"pallas_corrected_forward_plus_grad_over_forward {launch}"] = (
-            t["median_s"] / forward)
+        median = _timed_gradient(out, f"pallas forward+grad(alpha, radius), correction "
+                                      f"{launch}", fn, alpha, r, repeats)
+        if median is not None:
+            ratios[f"pallas_corrected_forward_plus_grad_over_forward {launch}"] = (
+                median / forward)
     return out
+
+
+def _timed_gradient(rows: list, case: str, fn, alpha, r, repeats: int) -> float | None:
+    """Time ``fn(alpha, r)`` and report it as ``case`` (median and compile time); a
+    launch Triton rejects is reported with its error and gives None."""
+    try:
+        t = time_fn(fn, alpha, r, repeats=repeats)
+    except Exception as err:  # noqa: BLE001 - reported, not fatal
+        report(rows, {"case": case, "error": repr(err)[:300]})
+        return None
+    report(rows, {"case": case, "median_s": t["median_s"],
+                  "compile_s": t["first_call_s"] - t["median_s"]})
+    return t["median_s"]
 
 
 def _pallas_bricks(n: int, ratios: dict, repeats: int) -> list[dict]:

@@ -55,6 +55,13 @@ def numbers(x: Any, name: str, where: str) -> Array:
     return as_float_array(x, name, where)
 
 
+def floating_dtype(dtype: Any, where: str) -> Any:
+    """``dtype`` if it is a floating dtype; an integer one would truncate every value."""
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"{where}: `dtype` must be a floating dtype, got {jnp.dtype(dtype)}.")
+    return dtype
+
+
 def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
     """A parameter leaf as an array of a floating dtype. An int (``d_max=16``,
     ``fov=30``) would otherwise stay an integer leaf, which ``jax.grad`` refuses and

@@ -192,7 +192,7 @@ def _bounds(path: str, value: Any) -> Bounds:
         raise ValueError(f"{_WHERE}: the bounds of {path!r} must be None or a pair "
                          f"(low, high), each a number or None, got {value!r}.")
     try:
-        if any(isinstance(b, bool | np.bool_) for b in value):
+        if _checks.holds_bool(value):
             raise TypeError("a bool would pass as 0 or 1")
         low, high = (None if b is None else float(b) for b in value)
     except (TypeError, ValueError) as err:

@@ -578,8 +578,7 @@ def focus_weights(
     outside = _checks.finite(outside, "outside", where)
     if dtype is None:
         dtype = jnp.result_type(center, radius, inside, outside)
-    if not jnp.issubdtype(dtype, jnp.floating):  # an integer dtype would truncate weights
-        raise TypeError(f"{where}: `dtype` must be a floating dtype, got {jnp.dtype(dtype)}.")
+    _checks.floating_dtype(dtype, where)
     # in the geometry's dtype (_focus_weights): rounded to a half-precision output dtype,
     # a radius of 1e-8 would become 0
     radius = _checks.refuse(radius.astype(jnp.promote_types(dtype, jnp.float32)),

@@ -162,11 +162,13 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     if np.iscomplexobj(given):  # converted, they would have lost their imaginary part
         raise TypeError(f"{where}: `{name}` must be real (L, 3) directions, got complex "
                         f"numbers.")
-    # converted to float64, a string would parse and a bool pass as 1
-    if given.size and not (jnp.issubdtype(given.dtype, jnp.floating)
-                           or jnp.issubdtype(given.dtype, jnp.integer)):
+    # converted to float64, a string would parse and a bool pass as 1 (also beside
+    # numbers, which NumPy promotes to float)
+    real = jnp.issubdtype(given.dtype, jnp.floating) or jnp.issubdtype(given.dtype, jnp.integer)
+    if (given.size and not real) or _checks.holds_bool(directions):
+        got = f"dtype {given.dtype}" if not real or given.dtype == np.bool_ else "a bool"
         raise TypeError(f"{where}: `{name}` must be an (L, 3) array of real numbers, got "
-                        f"dtype {given.dtype}.")
+                        f"{got}.")
     dirs = given.astype(np.float64)
     if dirs.ndim == 0:
         raise TypeError(

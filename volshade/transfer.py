@@ -170,8 +170,9 @@ class TransferFunction(eqx.Module):
                              f"of 5 numbers each, got {points!r:.80}.") from err
         # converted, a complex number would lose its imaginary part, a bool pass as 0/1
         # (also beside numbers, which NumPy promotes)
-        if _checks.holds_bool(points) or table.dtype.kind not in "iuf":
-            got = "a bool" if _checks.holds_bool(points) else f"{table.dtype} values"
+        has_bool = _checks.holds_bool(points)
+        if has_bool or table.dtype.kind not in "iuf":
+            got = "a bool" if has_bool else f"{table.dtype} values"
             raise TypeError(f"{where}: `points` must be rows of 5 real numbers (intensity, "
                             f"r, g, b, opacity), got {got}.")
         table = table.astype(float)
@@ -180,10 +181,8 @@ class TransferFunction(eqx.Module):
                              f"got shape {table.shape}.")
         if not np.all(np.isfinite(table)):
             raise ValueError(f"{where}: `points` contains NaN or inf.")
-        dtype = jnp.result_type(float) if dtype is None else dtype
-        if not jnp.issubdtype(dtype, jnp.floating):  # an integer dtype would truncate
-            raise TypeError(f"{where}: `dtype` must be a floating dtype, got "
-                            f"{jnp.dtype(dtype)}.")
+        dtype = (jnp.result_type(float) if dtype is None
+                 else _checks.floating_dtype(dtype, where))
         return cls(jnp.asarray(table[:, 0], dtype), jnp.asarray(table[:, 1:4], dtype),
                    jnp.asarray(table[:, 4], dtype), step0=step0)
 
