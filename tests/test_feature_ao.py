@@ -518,3 +518,19 @@ def test_numpy_scalars_are_options_and_known_bad_values_raise_at_once():
     with pytest.raises(ValueError, match="^volshade.FeatureAmbientOcclusion: .*exceeds "
                                          "`max_radius`"):
         stepped(vol, base=tf)
+
+
+def test_feature_labels_checks_its_input():
+    # found by a review: a 3-D volume was read as (F, H, W), NaN made a voxel of opacity
+    # 0.5 "no feature", and an empty or list input failed inside Python
+    with pytest.raises(ValueError, match=r"feature_labels: `opacities` must have 4 dimensions"):
+        feature_labels(jnp.ones((4, 4, 4)))
+    with pytest.raises(ValueError, match="`opacities` must not be empty"):
+        feature_labels(jnp.zeros((0, 2, 2, 2)))
+    with pytest.raises(ValueError, match="`opacities` contains NaN"):
+        feature_labels(jnp.array([jnp.nan, 0.5]).reshape(2, 1, 1, 1))
+    with pytest.raises(ValueError, match=r"`opacities` must lie in \[0, 1\]"):
+        feature_labels(jnp.array([2.0, 0.5]).reshape(2, 1, 1, 1))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="`opacities` contains NaN"):
+        eqx.filter_jit(feature_labels)(jnp.array([jnp.nan, 0.5]).reshape(2, 1, 1, 1))
+    assert feature_labels([[[[0.5]]], [[[0.7]]]]).tolist() == [[[1]]]

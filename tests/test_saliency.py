@@ -286,24 +286,47 @@ def test_viewpoint_saliency_float32_agrees_with_float64(visibility):
 def test_half_precision_sums_in_float32(dtype):
     # found by a review: viewpoint saliency, projected area and the regression gradient
     # summed in the input's half precision (bfloat16: 1.7 % and 1.9 % off), and the
-    # saliency per area divided two rounded results; now only the result is rounded
+    # saliency per area divided two rounded results; now the regression gradient is
+    # rounded once, and the sums over a view are returned in float32 (see below)
     rng = np.random.default_rng(3)
     sal = jnp.asarray(rng.uniform(0.5, 1.0, (16, 16, 16)), dtype)
     alpha = jnp.asarray(rng.uniform(0.0, 0.05, (16, 16, 16)), dtype)
     views = np.array([[1.0, 0, 0], [0.3, -0.5, 0.8]])
     half_ulp = float(jnp.finfo(dtype).eps) / 2
     for got, want in (
+            (regression_gradient(sal), regression_gradient(sal.astype(jnp.float32))),):
+        assert got.dtype == dtype
+        np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=half_ulp,
+                                   atol=float(jnp.finfo(dtype).smallest_normal))
+    for got, want in (
             (viewpoint_saliency(sal, alpha, views),
              viewpoint_saliency(sal.astype(jnp.float32), alpha.astype(jnp.float32), views)),
             (projected_area(jnp.ones((48, 48, 48), dtype), views),
              projected_area(jnp.ones((48, 48, 48), jnp.float32), views)),
-            (regression_gradient(sal), regression_gradient(sal.astype(jnp.float32))),
             (viewpoint_saliency(sal, alpha, views, per_area=True),
              viewpoint_saliency(sal.astype(jnp.float32), alpha.astype(jnp.float32), views,
                                 per_area=True))):
-        assert got.dtype == dtype
-        np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=half_ulp,
-                                   atol=float(jnp.finfo(dtype).smallest_normal))
+        assert got.dtype == jnp.float32
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])
+def test_half_precision_view_sums_do_not_overflow(dtype):
+    # found by a review: the sums over a view were rounded to the saliency's dtype, so in
+    # float16 they overflowed to inf (two views both inf: the first was picked as the most
+    # salient, whatever the true order), and an area of 256 x 256 voxels did too
+    sal = jnp.full((16, 16, 16), 32.0, dtype)
+    alpha = jnp.zeros((16, 16, 16), dtype).at[15].set(0.5)
+    views = np.array([[1.0, 0, 0], [-1.0, 0, 0]])
+    got = viewpoint_saliency(sal, alpha, views)
+    # from +d the slab d = 15 (opacity 1/2) is in front and halves what lies behind it
+    np.testing.assert_allclose(got, [256 * 32 + 15 * 256 * 32 * 0.5, 16 * 256 * 32],
+                               rtol=1e-6)
+    assert got.dtype == jnp.float32
+    np.testing.assert_array_equal(most_salient_view(sal, alpha, views), [-1.0, 0, 0])
+    np.testing.assert_array_equal(least_salient_view(sal, alpha, views), [1.0, 0, 0])
+    area = projected_area(jnp.ones((1, 256, 256), dtype), np.array([[1.0, 0, 0]]))
+    np.testing.assert_array_equal(area, [65536.0])
 
 
 def test_viewpoint_saliency_gradient_exact_at_opacity_one():
@@ -403,6 +426,48 @@ def test_errors():
         projected_area(v, VIEWS, level=jnp.nan)
 
 
+def test_inputs_a_review_found_accepted():
+    # found by a review, each accepted without a word before
+    cube = jnp.zeros((4, 4, 4)).at[1:3, 1:3, 1:3].set(1.0)
+    views = np.array([[1.0, 0, 0], [-1.0, 0, 0]])
+    # a level of 1 or more gave every view the area 0, a negative one counted empty voxels
+    for level in (1.0, 5.0, -3.0):
+        with pytest.raises(ValueError, match=r"`level` must be an opacity in \[0, 1\)"):
+            projected_area(cube, views, level=level)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"`level` must be an opacity"):
+        eqx.filter_jit(lambda lv: projected_area(cube, views, level=lv))(1.0)
+    np.testing.assert_array_equal(projected_area(cube, views, level=0.999), [4.0, 4.0])
+    # a float16 level just below 1 is compared in float32, not rounded to 1
+    np.testing.assert_array_equal(
+        projected_area(cube.astype(jnp.float16), views, level=0.9999), [4.0, 4.0])
+    # a negative saliency made the view that hides it the most salient
+    hidden = jnp.zeros((4, 4, 4)).at[0].set(-1.0)
+    for fn in (viewpoint_saliency, most_salient_view, least_salient_view):
+        with pytest.raises(ValueError, match=r"`saliency` must be >= 0 \(a gradient magnitude"):
+            fn(hidden, cube, views)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="`saliency` must be >= 0"):
+        eqx.filter_jit(lambda s: viewpoint_saliency(s, cube, views))(hidden)
+    # an unscaled saliency is still accepted
+    np.testing.assert_allclose(viewpoint_saliency(cube * 7.0, cube, views), [28.0, 28.0])
+    # the error for an empty (D, H, W, C) obscurance showed the shape without C
+    with pytest.raises(ValueError, match=r"must not be empty, got shape \(0, 2, 2, 3\)"):
+        saliency(jnp.ones((0, 2, 2, 3)))
+
+
+def test_opacity_factor_compares_as_modulate_opacity_does():
+    # found by a review: opacity_factor compared a bfloat16 saliency with 1 - boost_top in
+    # bfloat16 (0.9 rounds to 0.8984), modulate_opacity in float32, so they doubled
+    # different voxels and min(1, f alpha) was not the modulated opacity
+    s = jnp.array([[[0.8984375, 0.2001953125]]], jnp.bfloat16)
+    a = jnp.full((1, 1, 2), 0.25)
+    factor = opacity_factor(s, boost_top=0.1, threshold=0.201)
+    assert factor.dtype == jnp.bfloat16
+    np.testing.assert_array_equal(
+        jnp.minimum(1, factor.astype(jnp.float32) * a),
+        modulate_opacity(a, s, boost_top=0.1, threshold=0.201))
+    np.testing.assert_array_equal(factor.astype(jnp.float32), [[[0.8984375, 0.0]]])
+
+
 def test_half_precision_partner_does_not_round_the_other_volume():
     # found by a review: viewpoint saliency cast the opacity to a bfloat16 saliency's
     # dtype (0.999 became 1: a visible voxel was hidden, 0.99 gave a 37 % error), and
@@ -412,9 +477,8 @@ def test_half_precision_partner_does_not_round_the_other_volume():
     alpha = jnp.zeros((4, 1, 1), jnp.float32).at[1:3].set(0.99)
     view = np.array([[1.0, 0, 0]])
     got = viewpoint_saliency(sal, alpha, view)
-    assert got.dtype == jnp.bfloat16
     want = viewpoint_saliency(sal.astype(jnp.float32), alpha, view)
-    np.testing.assert_allclose(np.asarray(got, np.float32), want, rtol=2 ** -8)
+    np.testing.assert_array_equal(got, want)
     np.testing.assert_allclose(want, [0.01 ** 2], rtol=1e-5)
     opacity = jnp.full((1, 1, 2), 0.5, jnp.bfloat16)
     out = modulate_opacity(opacity, jnp.array([[[0.1999, 0.2]]], jnp.float32))

@@ -97,12 +97,31 @@ def feature_labels(opacities: Float[Array, "F D H W"]) -> Int[Array, "D H W"]:
     """The feature $f(x)$ of every voxel (section 4.2).
 
     Args:
-        opacities: ``(F, D, H, W)`` opacity of each feature.
+        opacities: ``(F, D, H, W)`` opacity of each feature, in [0, 1].
 
     Returns:
         ``(D, H, W)`` index of the feature of largest opacity (the first on ties), or
         -1 where every feature is transparent.
+
+    Raises:
+        ValueError: ``opacities`` not 4-D, or empty.
+        TypeError: non-numeric ``opacities``.
+        ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN, inf or
+            values outside ``[0, 1]``.
+
+    Example:
+        >>> a = jnp.stack([jnp.full((2, 2, 2), 0.3), jnp.full((2, 2, 2), 0.6)])
+        >>> int(feature_labels(a.at[:, 0].set(0.0))[0, 0, 0]), int(feature_labels(a)[1, 1, 1])
+        (-1, 1)
     """
+    where = "volshade.feature_ao.feature_labels"
+    opacities = _checks.as_float_array(opacities, "opacities", where)
+    _checks.check_ndim(opacities, 4, "opacities", where, "(F, D, H, W)")
+    return _labels(_checks.finite(opacities, "opacities", where, unit_range=True))
+
+
+def _labels(opacities: Array) -> Array:
+    """:func:`feature_labels` of checked opacities."""
     return jnp.where(_fold(jnp.maximum, opacities) > 0, jnp.argmax(opacities, axis=0),
                      _NO_FEATURE)
 
@@ -120,7 +139,7 @@ def _max_occlusion(ao: Array, opacities: Array) -> Array:
 
 
 def _own_feature(ao: Array, opacities: Array) -> Array:
-    return _own(ao, feature_labels(opacities), _max_occlusion(ao, opacities))
+    return _own(ao, _labels(opacities), _max_occlusion(ao, opacities))
 
 
 def _box(x: Array, op, mode: str) -> Array:
@@ -136,7 +155,7 @@ def _box(x: Array, op, mode: str) -> Array:
 
 
 def _neighbourhood(ao: Array, opacities: Array) -> Array:
-    labels = feature_labels(opacities)
+    labels = _labels(opacities)
     fallback = _max_occlusion(ao, opacities)
     own = _own(ao, labels, fallback)
     weight = _fold(jnp.maximum, opacities)  # the opacity of each voxel's own feature

@@ -124,18 +124,14 @@ def saliency(
     _checks.option(weighting, _WEIGHTS, "weighting", where)
     arr = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
                          "obscurance", where)
-    if arr.ndim == 4:
-        if arr.shape[-1] == 0:
-            raise ValueError(f"{where}: `obscurance` must have at least one channel, got "
-                             f"shape {arr.shape}.")
-        _checks.check_ndim(arr[..., 0], 3, "obscurance", where, "(D, H, W) or (D, H, W, C)")
-        channels = [arr[..., c] for c in range(arr.shape[-1])]
-    elif arr.ndim == 3:
-        _checks.check_ndim(arr, 3, "obscurance", where, "(D, H, W) or (D, H, W, C)")
-        channels = [arr]
-    else:
+    if arr.ndim not in (3, 4):
         raise ValueError(f"{where}: `obscurance` must have shape (D, H, W) or (D, H, W, C), "
                          f"got {arr.shape}; for a batch, use `jax.vmap`.")
+    if arr.ndim == 4 and arr.shape[-1] == 0:
+        raise ValueError(f"{where}: `obscurance` must have at least one channel, got "
+                         f"shape {arr.shape}.")
+    _checks.check_ndim(arr, arr.ndim, "obscurance", where, "(D, H, W) or (D, H, W, C)")
+    channels = [arr] if arr.ndim == 3 else [arr[..., c] for c in range(arr.shape[-1])]
     grads = [regression_gradient(ch, spacing=spacing, size=size, weighting=weighting)
              for ch in channels]
     return _scaled_magnitude(grads)
@@ -164,15 +160,18 @@ def _work_dtype(saliency: Array, opacity: Array):
 
 
 def _check_pair(saliency, opacity, where):
-    """Both volumes checked and in their :func:`_work_dtype`; also the dtype of
-    ``saliency``, that of the result."""
-    saliency = _checks.volume(saliency, "saliency", where)
+    """Both volumes checked and in their :func:`_work_dtype`, that of the result too.
+
+    The saliency may be unscaled or masked, but not negative: a gradient magnitude never
+    is, and a negative one would make a view that hides it the most salient."""
+    saliency = _checks.volume(saliency, "saliency", where, non_negative=True,
+                              hint="(a gradient magnitude, e.g. from `vs.saliency`)")
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
     if saliency.shape != opacity.shape:
         raise ValueError(f"{where}: `saliency` and `opacity` must have the same (D, H, W) "
                          f"shape, got {saliency.shape} and {opacity.shape}.")
     dtype = _work_dtype(saliency, opacity)
-    return saliency.astype(dtype), opacity.astype(dtype), saliency.dtype
+    return saliency.astype(dtype), opacity.astype(dtype)
 
 
 def _per_view(
@@ -239,7 +238,7 @@ def _viewpoint_sums(saliency: Array, opacity: Array, *, dirs: tuple, visibility:
     def reduce(alpha, cols_saliency, cosine):
         return _visible_sum(alpha, cols_saliency, vis_fn, sequential)
 
-    # the caller gives both in their _work_dtype and rounds the result
+    # the caller gives both in their _work_dtype
     return _per_view(opacity, np.asarray(dirs), reduce, saliency)
 
 
@@ -248,10 +247,9 @@ def _projected_area(mask: Array, *, dirs: tuple) -> Array:
     def reduce(alpha, _, cosine):
         return cosine * jnp.sum(jnp.any(alpha > 0, axis=0)).astype(alpha.dtype)
 
-    # in float32 at least, so that the cosine is not rounded to half precision before it
-    # scales the count; the caller rounds the result
-    work = _checks.at_least_float32(mask).dtype
-    return _per_view(mask.astype(work), np.asarray(dirs), reduce)
+    # in float32 at least (the caller's mask is), so that the cosine is not rounded to
+    # half precision before it scales the count, and the area does not overflow float16
+    return _per_view(mask, np.asarray(dirs), reduce)
 
 
 def viewpoint_saliency(
@@ -289,12 +287,14 @@ def viewpoint_saliency(
         per_area: divide by the projected area.
 
     Returns:
-        ``(V,)`` viewpoint saliencies in the dtype of ``saliency``.
+        ``(V,)`` viewpoint saliencies in the wider dtype of the two volumes, float32 at
+        least: a sum over a view exceeds float16's range (65504) from a few thousand
+        visible salient voxels on.
 
     Raises:
         ValueError: shapes differ, bad ``viewpoints``, unknown ``visibility``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
-            opacity outside [0, 1], NaN or inf in either volume.
+            opacity outside [0, 1], a negative saliency, NaN or inf in either volume.
 
     References:
         Ruiz et al. 2008, eq. (6); Lee, Varshney, Jacobs: Mesh saliency. SIGGRAPH 2005.
@@ -316,14 +316,14 @@ def _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area, whe
     normalised ``(V, 3)`` viewpoints as NumPy."""
     _checks.option(visibility, _VISIBILITY, "visibility", where)
     per_area = _checks.flag(per_area, "per_area", where)
-    saliency, opacity, out_dtype = _check_pair(saliency, opacity, where)
+    saliency, opacity = _check_pair(saliency, opacity, where)
     dirs = _direction_array(viewpoints, "viewpoints", where)
     static = _static_dirs(dirs)
     total = _viewpoint_sums(saliency, opacity, dirs=static, visibility=visibility,
                             sequential=_sequential_products())
     if per_area:
         total = safe_div(total, _projected_area(_nonempty(opacity, 0), dirs=static))
-    return total.astype(out_dtype), dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    return total, dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
 
 
 def _nonempty(opacity: Array, level: Array) -> Array:
@@ -348,10 +348,11 @@ def projected_area(
     Args:
         opacity: ``(D, H, W)`` opacities in [0, 1].
         viewpoints: ``(V, 3)`` concrete directions towards the viewer.
-        level: opacity above which a voxel counts as non-empty.
+        level: opacity in [0, 1) above which a voxel counts as non-empty.
 
     Returns:
-        ``(V,)`` areas in voxel$^2$, in the dtype of ``opacity``.
+        ``(V,)`` areas in voxel$^2$, in the dtype of ``opacity``, float32 at least (an
+        area of 256 x 256 voxels exceeds float16's range).
 
     Raises:
         ValueError: ``opacity`` not 3-D or empty; a non-scalar ``level``;
@@ -360,7 +361,8 @@ def projected_area(
         TypeError: non-numeric inputs (or a bool ``level``); ``viewpoints`` traced
             (they must be concrete), a number or complex.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in
-            ``opacity`` or ``level``, ``opacity`` outside [0, 1].
+            ``opacity`` or ``level``, ``opacity`` outside [0, 1], ``level`` outside
+            [0, 1).
 
     Example:
         >>> alpha = jnp.zeros((8, 8, 8)).at[2:4, 2:6, 2:6].set(1.0)
@@ -369,13 +371,20 @@ def projected_area(
     """
     where = "volshade.saliency.projected_area"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
-    level = _checks.scalar(level, "level", where).astype(opacity.dtype)
-    level = _checks.refuse(level, [(~jnp.isfinite(level), "`level` must be a finite opacity "
-                                    "(0 counts every voxel with any opacity).")], where)
+    level = _checks.scalar(level, "level", where)
+    # An opacity cannot exceed 1, so a level of 1 or more leaves every view empty, and
+    # one below 0 counts empty voxels: both are refused rather than answered with 0.
+    level = _checks.refuse(level, [
+        (~jnp.isfinite(level), "`level` must be a finite opacity (0 counts every voxel "
+                               "with any opacity)."),
+        ((level < 0) | (level >= 1), "`level` must be an opacity in [0, 1) (0 counts "
+                                     "every voxel with any opacity).")], where)
 
     # The mask of non-empty voxels is swept (opacity correction keeps 0 and 1 fixed).
     dirs = _static_dirs(_direction_array(viewpoints, "viewpoints", where))
-    return _projected_area(_nonempty(opacity, level), dirs=dirs).astype(opacity.dtype)
+    # compared in float32 at least: a float16 level of 0.9999 would round to 1
+    work = _checks.at_least_float32(opacity)
+    return _projected_area(_nonempty(work, level.astype(work.dtype)), dirs=dirs)
 
 
 def _select(saliency, opacity, viewpoints, per_area, visibility, pick, where):
@@ -503,7 +512,10 @@ def opacity_factor(
     """
     where = "volshade.saliency.opacity_factor"
     saliency = _saliency_volume(saliency, where)
-    return _opacity_factor(saliency, threshold, multiply, boost_top, where)
+    # compared in float32 at least, as modulate_opacity does: in bfloat16, 1 - boost_top
+    # would round (0.9 to 0.8984) and double other voxels than there
+    return _opacity_factor(_checks.at_least_float32(saliency), threshold, multiply,
+                           boost_top, where).astype(saliency.dtype)
 
 
 def _saliency_volume(saliency, where: str) -> Array:
