@@ -1,6 +1,7 @@
 """Parameter modules and entry points: float leaves that get gradients, and bad input
 refused with a message that names the argument (found by a new-user walkthrough)."""
 
+import dataclasses
 import re
 
 import equinox as eqx
@@ -167,10 +168,10 @@ def test_nested_lists_become_arrays():
     # None failed inside JAX without the field's name
     (lambda: march(VOL, TF, CAM, shading="phong",
                    phong=eqx.tree_at(lambda p: p.ambient, vs.Phong(), True)), TypeError,
-     "volshade.Phong: `ambient` must be a real number, got True"),
+     "volshade.Phong: `ambient` must be a real number or an array of them, got True"),
     (lambda: march(VOL, TF, CAM, shading="phong",
                    phong=eqx.tree_at(lambda p: p.shininess, vs.Phong(), "x")), TypeError,
-     "volshade.Phong: `shininess` must be a real number, got 'x'"),
+     "volshade.Phong: `shininess` must be a real number or an array of them, got 'x'"),
     # found by a review: lao took bools as 0 or 1 (0-d bool arrays, beside numbers), the
     # Module accepted weights lao refuses, and None or ragged directions ended in NumPy's
     # error without the argument's name
@@ -400,6 +401,74 @@ def test_from_view_refuses_zero_and_nan_directions():
     assert np.allclose(build(jnp.array([0.0, 1.0, 0.0])), [0.0, 2.5, 0.0], atol=1e-6)
     with pytest.raises(Exception, match="`view` must be a finite, non-zero"):
         jax.block_until_ready(build(jnp.zeros(3)))
+    # found by a review: subnormal components passed the host's "non-zero" check, then
+    # XLA flushed them to 0 and the error blamed `azimuth`, never passed
+    tiny = jnp.array([1e-39, 1e-39, 0.0], jnp.float32)
+    with pytest.raises(ValueError, match="from_view: `view` must be a finite, non-zero"):
+        vs.Camera.from_view(tiny)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="`view` must be a finite, non-zero"):
+        eqx.filter_jit(lambda v: vs.Camera.from_view(v).eye)(tiny)
+    np.testing.assert_allclose(vs.Camera.from_view(jnp.array([1e-37, 0.0, 0.0])).eye,
+                               [2.5, 0.0, 0.0], atol=1e-6)
+
+
+def test_image_shape_must_be_an_ordered_pair():
+    # found by a review: any iterable was taken, a set in its own order ({6, 4} -> (4, 6))
+    for shape in ({6, 4}, {6: "H", 4: "W"}, "ab", None, 3.0, np.zeros((2, 2), int)):
+        with pytest.raises(TypeError, match=r"`image_shape` must be \(H, W\), a tuple or "
+                                            r"list of two ints, or one int"):
+            vs.Camera.orbit(image_shape=shape)
+    for shape, want in (([6, 4], (6, 4)), ((6, 4), (6, 4)), (np.array([6, 4]), (6, 4)),
+                        (5, (5, 5))):
+        assert vs.Camera.orbit(image_shape=shape).image_shape == want
+
+
+def test_camera_fields_set_with_tree_at_are_checked_by_the_render():
+    # found by a review: the constructor refuses these, but a field set with eqx.tree_at
+    # rendered (a (1,) target broadcast to (3,), a bool fov as 1) or failed inside NumPy
+    for field, value, error, match in (
+            ("target", jnp.array([0.2]), ValueError, r"`target` must have shape \(3,\), got \(1"),
+            ("eye", jnp.array([2.5, 1.0, 1.0, 0.0]), ValueError, r"`eye` must have shape \(3,\)"),
+            ("eye", "abc", TypeError, "`eye` must be a real number or an array of them"),
+            ("fov", jnp.asarray(True), TypeError, "`fov` must be a real number"),
+            ("width", None, TypeError, "`width` must be a real number")):
+        cam = eqx.tree_at(lambda c, f=field: getattr(c, f), CAM, value)
+        with pytest.raises(error, match=f"volshade.Camera: {match}"):
+            vs.render(VOL_SCENE, cam)
+        with pytest.raises(error, match=match):
+            vs.render(VOL_SCENE, [CAM, cam])
+    # numbers are fine, as the constructor takes them
+    np.testing.assert_allclose(vs.render(VOL_SCENE, eqx.tree_at(lambda c: c.fov, CAM, 30)),
+                               vs.render(VOL_SCENE, CAM), atol=1e-7)
+
+
+def test_unread_parameters_are_refused_however_they_are_set():
+    # found by a review: the constructor refused a parameter the scene does not read,
+    # set to other than its default, only when built from known values: set with
+    # eqx.tree_at, or with the scene built under jit, it was ignored by the render
+    focused = lambda g: vs.Scene(volume=VOL, transfer=TF, composition="importance",  # noqa: E731
+                                 importance=vs.Importance(global_weight=g), focus=vs.Focus())
+    render = eqx.filter_jit(lambda g: vs.render(focused(g), CAM))
+    assert render(1.0).shape == (6, 6, 4)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"`importance.global_weight` is not read"):
+        render(5.0)
+    dark = vs.Scene(volume=VOL, transfer=TF, ambient="lao", shading="obscurance",
+                    lao=vs.LocalAmbientOcclusion(2.0, directions=6, samples=2))
+    for value in (0.9, jnp.asarray(0.9)):
+        with pytest.raises(ValueError, match=r"volshade.render: `phong.ambient` is not read by "
+                                             r"this scene \(shading='obscurance'.*default, 0.35"):
+            vs.render(eqx.tree_at(lambda s: s.phong.ambient, dark, value), CAM)
+    np.testing.assert_array_equal(
+        vs.render(eqx.tree_at(lambda s: s.phong.ambient, dark, 0.35), CAM), vs.render(dark, CAM))
+    # a copy under jit that turns an effect off: a changed parameter cannot be told from
+    # the defaults while tracing, so the copy's render refuses it when it runs
+    lit = vs.Scene(volume=VOL, transfer=TF, shading="phong")
+    changed = eqx.tree_at(lambda s: s.phong.diffuse, lit, jnp.asarray(0.3))
+    unlit = eqx.filter_jit(lambda s: vs.render(dataclasses.replace(s, shading="none"), CAM))
+    np.testing.assert_allclose(unlit(lit), vs.render(VOL_SCENE, CAM), atol=1e-6)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"`phong` is used only with "
+                                                      r"shading='phong'.*pass `phong=None` too"):
+        unlit(changed)
 
 
 def test_obscurance_input_errors_name_the_argument():

@@ -27,11 +27,13 @@ def _image_shape(shape) -> tuple:
     """``(H, W)``; one int ``n`` means a square ``(n, n)`` image."""
     if isinstance(shape, int | np.integer) and not isinstance(shape, bool):
         return (int(shape), int(shape))
-    try:
+    # an ordered sequence only: a set's order is not (H, W), and would transpose the image
+    if isinstance(shape, np.ndarray) and shape.ndim == 1:
+        return tuple(shape.tolist())  # Python numbers: NumPy scalars are arrays to equinox
+    if isinstance(shape, list | tuple):
         return tuple(shape)
-    except TypeError as err:
-        raise TypeError(f"volshade.Camera: `image_shape` must be (H, W) or one int, got "
-                        f"{shape!r}.") from err
+    raise TypeError(f"volshade.Camera: `image_shape` must be (H, W), a tuple or list of "
+                    f"two ints, or one int, got {shape!r:.80}.")
 
 
 @jax.jit
@@ -114,15 +116,19 @@ class Camera(eqx.Module):
             raise ValueError(f"{where}: `image_shape` must be (H, W), got {self.image_shape!r}.")
         for n in self.image_shape:
             _checks.positive_int(n, "image_shape", where)
-        for name in ("eye", "target", "up"):
-            if jnp.shape(getattr(self, name)) != (3,):
-                raise ValueError(f"{where}: `{name}` must have shape (3,), "
-                                 f"got {jnp.shape(getattr(self, name))}.")
         _checks.refuse(self, self._degenerate(), where, traced=False)  # traced: in rays
 
     def _degenerate(self) -> list[tuple[Array, str]]:
         """``(is_bad, message)`` for each way the camera can have no image: every
-        pixel would get the same ray, or the image would be flipped."""
+        pixel would get the same ray, or the image would be flipped. First the fields'
+        types and shapes are checked (raising at once): a field set with ``eqx.tree_at``
+        skips the constructor's checks."""
+        for name in ("eye", "target", "up", "fov", "width"):
+            _checks.set_leaf(getattr(self, name), name, "volshade.Camera")
+        for name in ("eye", "target", "up"):
+            if jnp.shape(getattr(self, name)) != (3,):
+                raise ValueError(f"volshade.Camera: `{name}` must have shape (3,), "
+                                 f"got {jnp.shape(getattr(self, name))}.")
         # NaN compares false here: non-finite values are the finiteness checks' to name
         xp, eye, target, up, fov, width = _checks.for_check(self.eye, self.target, self.up,
                                                             self.fov, self.width)
@@ -244,7 +250,8 @@ class Camera(eqx.Module):
         of 4 x 1 x 1 mm, ``(1, 1, 0)`` is 76 degrees above the h axis, not 45.
 
         Raises:
-            ValueError: ``view`` not of shape ``(3,)``, or zero or not finite (when
+            ValueError: ``view`` not of shape ``(3,)``, or zero (every component
+                subnormal counts as zero) or not finite (when
                 traced: ``equinox.EquinoxRuntimeError`` at run time); a bad
                 ``spacing``; the errors of :meth:`orbit` for its other keywords.
             TypeError: a non-numeric (or bool) ``view``; ``azimuth`` or ``elevation``
@@ -264,8 +271,13 @@ class Camera(eqx.Module):
             raise ValueError(f"{where}: `view` must be a (3,) direction, got shape "
                              f"{view.shape}.")
         xp, host = _checks.for_check(view)
-        view = _checks.refuse(view, [(~xp.all(xp.isfinite(host)) | ~xp.any(host != 0),
-                                      "`view` must be a finite, non-zero (3,) direction.")],
+        # a view of subnormal components counts as zero: XLA on a CPU flushes them to 0
+        tiny = np.finfo(view.dtype).tiny
+        view = _checks.refuse(view, [(~xp.all(xp.isfinite(host))
+                                      | ~(xp.max(xp.abs(host)) >= tiny),
+                                      f"`view` must be a finite, non-zero (3,) direction "
+                                      f"(with a component of magnitude {tiny:.3g} or more "
+                                      f"in its dtype).")],
                               where)
         spacing = jnp.asarray(_checks.spacing(spacing, where), view.dtype)
         azimuth, elevation = _view_angles(view, spacing)

@@ -158,10 +158,10 @@ def _parameter(scene: Scene, path: str) -> tuple[_Parameter, Array | float]:
                          f"scene, got {what}.")
     # one spelling per leaf ('features.00' is 'features.0'), so overlaps are found
     field = ".".join(str(int(p)) if _is_index(p) else p for p in parts[:k])
-    why = scene._unread_leaves().get(field)
-    if why is not None:
-        raise ValueError(f"{_WHERE}: {path!r} is not read by this scene ({why}), so a fit "
-                         f"cannot move it; fit a parameter the render uses.")
+    unread = scene._unread_leaves().get(field)
+    if unread is not None:
+        raise ValueError(f"{_WHERE}: {path!r} is not read by this scene ({unread.reason}), "
+                         f"so a fit cannot move it; fit a parameter the render uses.")
     index = parts[k:]
     if index and jnp.ndim(node) == 0:
         raise ValueError(f"{_WHERE}: {path!r}: {field!r} is a scalar; name it without "

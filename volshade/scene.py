@@ -13,7 +13,7 @@ recompiles.
 import dataclasses
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -119,13 +119,19 @@ _PARAMETERS: dict[str, tuple[type, str, tuple[str, ...], bool]] = {
 }
 
 
-def _still_default(value: eqx.Module, kind: type) -> bool:
-    """Whether effect parameters equal their type's defaults (traced values are taken to
-    be: they come from a scene that held the defaults, e.g. a copy under ``jit``)."""
-    try:
-        return bool(eqx.tree_equal(value, kind()))
-    except jax.errors.ConcretizationTypeError:
-        return True
+def _changed(value: eqx.Module, kind: type) -> Any:
+    """Whether effect parameters differ from their type's defaults: a bool, or a traced
+    one where their values are traced (a copy under ``jit``)."""
+    same = eqx.tree_equal(value, kind())
+    known = _checks.concrete(same)
+    return jnp.logical_not(same) if known is None else not bool(known)
+
+
+def _unused_message(name: str, stage: str, option: str, users: tuple[str, ...]) -> str:
+    wanted = " or ".join(f"{stage}={u!r}" for u in users)
+    return (f"`{name}` is used only with {wanted}, got {stage}={option!r}; set {wanted} or "
+            f"leave `{name}` out (a copy with dataclasses.replace keeps it: pass "
+            f"`{name}=None` too).")
 
 
 def _set_to_other_than(value: Any, default: float) -> bool:
@@ -134,6 +140,15 @@ def _set_to_other_than(value: Any, default: float) -> bool:
         return bool(jnp.any(jnp.asarray(value) != default))
     except jax.errors.ConcretizationTypeError:
         return False
+
+
+class _Unread(NamedTuple):
+    """A leaf of a scene's effect parameters that its other settings leave unread."""
+
+    leaf: Any
+    default: float
+    reason: str
+    message: str  # refusing another value than the default
 
 
 class Scene(eqx.Module):
@@ -146,7 +161,8 @@ class Scene(eqx.Module):
     refused rather than ignored. A copy that turns an effect off
     (``dataclasses.replace(scene, ambient="none")``) drops the defaults the scene filled
     in, and refuses parameters that were given or changed unless they are dropped too
-    (``lao=None``).
+    (``lao=None``); under ``jit``, where a change is not known while tracing, the copy is
+    refused when its render runs (the check rides on ``background``).
 
     The constructor checks types, shapes, options and which effects use what (see
     Raises); values (NaN or inf in ``volume`` or a parameter, out-of-range values)
@@ -219,7 +235,8 @@ class Scene(eqx.Module):
             ``ambient="feature_ao"`` without ``feature_ao``; effect parameters given to a
             scene that does not use them; ``focus`` without ``composition="importance"``;
             ``importance.global_weight`` (with ``focus``) or ``phong.ambient`` (with
-            ``shading="obscurance"``) set to other than its default; ``clip`` with
+            ``shading="obscurance"``) set to other than its default (set with
+            ``eqx.tree_at`` or traced: refused by :func:`render`); ``clip`` with
             ``ambient="feature_ao"`` or ``"obscurance"`` or ``modulation="saliency"``;
             ``background`` not of shape ``(3,)`` or outside [0, 1].
         TypeError: non-numeric ``volume``, ``ambient_volume`` (complex included) or
@@ -268,15 +285,24 @@ class Scene(eqx.Module):
         for name, (kind, stage, users, has_defaults) in _PARAMETERS.items():
             if not has_defaults:
                 continue
-            value, used = getattr(self, name), getattr(self, stage) in users
+            value, option = getattr(self, name), getattr(self, stage)
+            used = option in users
             if value is None and used:
                 setattr(self, name, kind())
                 defaulted.add(name)
-            elif name not in defaulted:
                 continue
-            elif value is None or not _still_default(value, kind):
+            if name not in defaulted:
+                continue
+            changed = True if value is None else _changed(value, kind)
+            if changed is True:
                 defaulted.discard(name)  # (a value put in its place is the user's)
             elif not used:
+                if changed is not False:
+                    # traced (a copy under jit): a value changed with eqx.tree_at cannot be
+                    # told from the defaults here, so the copy is refused at run time
+                    self.background = _checks.refuse(
+                        _checks.float_leaf(self.background, "background", _WHERE),
+                        [(changed, _unused_message(name, stage, option, users))], _WHERE)
                 setattr(self, name, None)
                 defaulted.discard(name)
         self._defaulted = tuple(sorted(defaulted))
@@ -316,25 +342,15 @@ class Scene(eqx.Module):
                 raise TypeError(f"{_WHERE}: `{name}` must be a volshade.{kind.__name__}, "
                                 f"got {type(value).__name__}.")
             if option not in users:
-                wanted = " or ".join(f"{stage}={u!r}" for u in users)
-                raise ValueError(f"{_WHERE}: `{name}` is used only with {wanted}, got "
-                                 f"{stage}={option!r}; set {wanted} or leave `{name}` out "
-                                 f"(a copy with dataclasses.replace keeps it: pass "
-                                 f"`{name}=None` too).")
+                raise ValueError(f"{_WHERE}: {_unused_message(name, stage, option, users)}")
         if self.focus is not None and not isinstance(self.focus, Focus):
             raise TypeError(f"{_WHERE}: `focus` must be a volshade.Focus, got "
                             f"{type(self.focus).__name__}.")
         if self.focus is not None and self.composition != "importance":
             raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
-        for path, why in self._unread_leaves().items():
-            stage, name = path.split(".")
-            # the field's default as written (a Python number: under jit the built module's
-            # leaves are traced)
-            (default,) = (f.default for f in dataclasses.fields(_PARAMETERS[stage][0])
-                          if f.name == name)
-            if _set_to_other_than(getattr(getattr(self, stage), name), default):
-                raise ValueError(f"{_WHERE}: `{path}` is not read by this scene ({why}); "
-                                 f"leave it at its default, {default:g}.")
+        for unread in self._unread_leaves().values():
+            if _set_to_other_than(unread.leaf, unread.default):
+                raise ValueError(f"{_WHERE}: {unread.message}")
         if self.clip is not None:
             if not isinstance(self.clip, Clip):
                 raise TypeError(f"{_WHERE}: `clip` must be a volshade clip shape (e.g. "
@@ -353,16 +369,27 @@ class Scene(eqx.Module):
         _checks.in_unit_range(self.background, "background", _WHERE, hint=BACKGROUND_HINT,
                               traced=False)
 
-    def _unread_leaves(self) -> dict[str, str]:
+    def _unread_leaves(self) -> dict[str, "_Unread"]:
         """Leaves of the effect parameters that this scene's other settings leave unread,
-        by path, with the reason (refused when set, and by :func:`volshade.fit`)."""
-        unread = {}
+        by path (refused when set: by the constructor, by :func:`render` where a copy or
+        ``eqx.tree_at`` set them, and by :func:`volshade.fit` as parameters to fit)."""
+        why = {}
         if self.focus is not None:
-            unread["importance.global_weight"] = ("the focus's `inside` and `outside` "
-                                                  "weights replace it on every ray")
+            why["importance.global_weight"] = ("the focus's `inside` and `outside` "
+                                               "weights replace it on every ray")
         if self.shading == "obscurance":
-            unread["phong.ambient"] = ("shading='obscurance' takes the obscurance as its "
-                                       "ambient term, with Phong's diffuse and specular")
+            why["phong.ambient"] = ("shading='obscurance' takes the obscurance as its "
+                                    "ambient term, with Phong's diffuse and specular")
+        unread = {}
+        for path, reason in why.items():
+            stage, name = path.split(".")
+            # the field's default as written (a Python number: under jit the built
+            # module's leaves are traced)
+            (default,) = (f.default for f in dataclasses.fields(_PARAMETERS[stage][0])
+                          if f.name == name)
+            unread[path] = _Unread(getattr(getattr(self, stage), name), default, reason,
+                                   f"`{path}` is not read by this scene ({reason}); leave "
+                                   f"it at its default, {default:g}.")
         return unread
 
     def plan(self) -> dict[str, str]:
@@ -439,6 +466,20 @@ def _finite_parameters(scene: Scene, camera: Any) -> tuple[Scene, Any]:
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
+def _unread_at_default(scene: Scene) -> Scene:
+    """``scene``, refused where a leaf it does not read holds other than its default: the
+    constructor refuses known values, but a leaf set with ``eqx.tree_at``, or a scene
+    built under ``jit``, reaches the render unchecked (the render would ignore it)."""
+    for path, unread in scene._unread_leaves().items():
+        stage, name = path.split(".")
+        xp, value = _checks.for_check(unread.leaf)
+        checked = _checks.refuse(unread.leaf, [(xp.any(value != unread.default),
+                                                unread.message)], "volshade.render")
+        scene = eqx.tree_at(lambda s, stage=stage, name=name: getattr(getattr(s, stage), name),
+                            scene, checked)
+    return scene
+
+
 def _check_cameras(camera: Any, where: str = "volshade.render") -> None:
     """Refuse anything but a camera or a non-empty list or tuple of cameras (for
     :func:`render` and :func:`volshade.fit`)."""
@@ -503,8 +544,11 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
             an array, in place of an array leaf (set with ``eqx.tree_at``, named by
             its path; lists and tuples of numbers are made arrays).
         ValueError / EquinoxRuntimeError: NaN or inf in a scene or camera parameter
-            (named), and the checks of the effects and of
-            :func:`~volshade.render.march`.
+            (named); a parameter the scene does not read set to other than its default
+            (``importance.global_weight`` with a ``focus``, ``phong.ambient`` with
+            ``shading="obscurance"``); a camera field set with ``eqx.tree_at`` to what
+            :class:`~volshade.camera.Camera` refuses; and the checks of the effects and
+            of :func:`~volshade.render.march`.
 
     Example:
         >>> scene = Scene(volume=vs.data.phantom("shells", shape=16),
@@ -524,6 +568,7 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
     camera = (_containers_as_arrays(camera, "camera") if isinstance(camera, Camera) else
               [_containers_as_arrays(cam, f"camera[{i}]") for i, cam in enumerate(camera)])
     scene, camera = _finite_parameters(scene, camera)
+    scene = _unread_at_default(scene)
     # the volume first, so a NaN in it is named as the render's, not as the first effect's
     scene = eqx.tree_at(lambda s: s.volume, scene,
                         _checks.finite(scene.volume, "volume", "volshade.render"))

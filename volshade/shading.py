@@ -76,14 +76,7 @@ class Phong(eqx.Module):
         and at once where they are not scalars (a batch of settings is for vmap)."""
         for name in self._COEFFICIENTS:
             value = getattr(self, name)
-            # a leaf set with eqx.tree_at skips the constructor: a bool would shade as 0 or
-            # 1, a string or None fail inside JAX without the field's name
-            if _checks.holds_bool(value) or not (
-                    isinstance(value, float | int) or (eqx.is_array(value) and (
-                        jnp.issubdtype(value.dtype, jnp.floating)
-                        or jnp.issubdtype(value.dtype, jnp.integer)))):
-                raise TypeError(f"volshade.Phong: `{name}` must be a real number, got "
-                                f"{value!r:.80}.")
+            _checks.set_leaf(value, name, "volshade.Phong")
             if jnp.ndim(value) != 0:
                 raise ValueError(f"volshade.Phong: `{name}` must be a scalar to shade, got "
                                  f"shape {jnp.shape(getattr(self, name))}; for a batch of "
