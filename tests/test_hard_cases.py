@@ -618,9 +618,14 @@ def test_projected_area_of_one_voxel(opacity, dtype):
     want = MAJOR if opacity > 0 else np.zeros(len(VIEWS))
     np.testing.assert_allclose(np.asarray(area), want, rtol=4 * jnp.finfo(dtype).eps)
     assert bool(jnp.all(area[:4] == (1.0 if opacity > 0 else 0.0)))
-    # a level of exactly the voxel's opacity: not above it, not seen
-    assert bool(jnp.all(projected_area(jnp.full((1, 1, 1), opacity, dtype), VIEWS,
-                                       level=opacity) == 0))
+    # a level of exactly the voxel's opacity: not above it, not seen (a level of 1, which
+    # no opacity can exceed, is refused)
+    if opacity < 1:
+        assert bool(jnp.all(projected_area(jnp.full((1, 1, 1), opacity, dtype), VIEWS,
+                                           level=opacity) == 0))
+    else:
+        with pytest.raises(ValueError, match=r"`level` must be an opacity in \[0, 1\)"):
+            projected_area(jnp.full((1, 1, 1), opacity, dtype), VIEWS, level=opacity)
 
 
 @pytest.mark.parametrize("opacity", [0.0, 0.4, 1.0])
