@@ -127,7 +127,7 @@ def test_nested_lists_become_arrays():
      r"`directions` must have shape \(L, 3\)"),
     (lambda: vs.LocalAmbientOcclusion(3.0, directions=0), ValueError, "`directions` must be >= 1"),
     (lambda: vs.lao(jnp.zeros((4, 4, 4)), directions=6, radius="3"), TypeError,
-     "`radius` must be a number"),
+     r"`radius` must be a real number \(voxels\), got '3'"),
     (lambda: vs.Scene(volume=VOL, transfer=TF, step="0.5"), TypeError, "`step` must be a number"),
     (lambda: vs.Focus(radius=0.0), ValueError, "`radius` must be > 0 .*image height"),
     (lambda: vs.Focus(center=(32.0, 32.0)), ValueError, "`center` must be .*fractions .*"
@@ -176,7 +176,7 @@ def test_nested_lists_become_arrays():
     # Module accepted weights lao refuses, and None or ragged directions ended in NumPy's
     # error without the argument's name
     (lambda: vs.lao(DENSITY, directions=4, radius=3.0, offset=np.array(False)), TypeError,
-     r"lao: `offset` must be a number \(voxels\), got array\(False\)"),
+     r"lao: `offset` must be a number \(voxels\), got the bool array\(False\)"),
     (lambda: vs.lao(DENSITY, directions=4, radius=3.0, weights=(True, 1.0, 1.0, 1.0)),
      TypeError, "lao: `weights` must be a number or numbers, got a bool"),
     (lambda: vs.lao(DENSITY, directions=[[True, 0, 0], [0, 1.0, 0]], radius=3.0), TypeError,
@@ -293,7 +293,8 @@ def test_nested_lists_become_arrays():
     (lambda: vs.obscurance(None, directions=icosphere(0), d_max=2.0), TypeError,
      "obscurance: `density` must be an array of numbers .* got NoneType"),
     (lambda: vs.saliency(None), TypeError, "saliency: `obscurance` must be an array"),
-    (lambda: vs.threshold(DENSITY, None, 1.0), TypeError, "threshold: `low` must be an array"),
+    (lambda: vs.threshold(DENSITY, None, 1.0), TypeError,
+     "threshold: `low` must be a real number, got None"),
     (lambda: vs.contextual_ao(DENSITY, clip=vs.SphereClip(center=(4.0, 4.0, 4.0), radius=1.0),
                               unclipped=None, directions=3, radius=2.0), TypeError,
      "contextual_ao: `unclipped` must be an array"),
@@ -473,7 +474,11 @@ def test_unread_parameters_are_refused_however_they_are_set():
 
 def test_obscurance_input_errors_name_the_argument():
     dirs = icosphere(0)
-    with pytest.raises(TypeError, match="`d_max` must be a number"):
+    # a d_max beyond float32 was refused as "not finite" (the cast made it inf)
+    with pytest.raises(ValueError, match=r"`d_max` = 1e\+39 \(voxels\) lies beyond the range "
+                                         r"of float32"):
+        vs.obscurance(DENSITY, directions=dirs, d_max=1e39)
+    with pytest.raises(TypeError, match=r"`d_max` must be a real number \(voxels\), got None"):
         vs.obscurance(DENSITY, directions=dirs, d_max=None)
     with pytest.raises(ValueError, match="`rho\\(d, d_max\\)` must return one value per"):
         vs.obscurance(DENSITY, directions=dirs, d_max=4.0, rho=lambda d, m: jnp.ones(3))

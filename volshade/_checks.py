@@ -187,16 +187,33 @@ def flag(value: Any, name: str, where: str) -> bool:
     return bool(value)
 
 
-def scalar(x: Any, name: str, where: str) -> Array:
-    """A floating scalar argument (trace-time shape check); a bool is refused, not taken
-    as 0 or 1."""
+def scalar(x: Any, name: str, where: str, *, unit: str = "", dtype: Any = None) -> Array:
+    """A real scalar argument as an array of a floating dtype (``dtype`` if given), with
+    trace-time type and shape checks naming ``unit`` (e.g. ``"voxels"``). A bool is
+    refused, not taken as 0 or 1; so is a known value beyond the range of ``dtype``,
+    which the cast would make inf (and a later check call "not finite")."""
+    unit = f" ({unit})" if unit else ""
     if holds_bool(x):
-        raise TypeError(f"{where}: `{name}` must be a number, got the bool {x!r}.")
-    arr = as_float_array(x, name, where)
+        raise TypeError(f"{where}: `{name}` must be a number{unit}, got the bool {x!r}.")
+    try:
+        arr = as_float_array(x, name, where)  # refuses None, strings, complex numbers
+    except TypeError as err:
+        raise TypeError(f"{where}: `{name}` must be a real number{unit}, got "
+                        f"{x!r:.80}.") from err
     if arr.ndim != 0:
-        raise ValueError(f"{where}: `{name}` must be a scalar, got shape {tuple(arr.shape)}; "
-                         f"for several values use `jax.vmap`.")
-    return arr
+        raise ValueError(f"{where}: `{name}` must be a scalar{unit}, got shape "
+                         f"{tuple(arr.shape)}; for several values use `jax.vmap`.")
+    if dtype is None:
+        return arr
+    # as given (NumPy keeps a Python float in float64; jnp.asarray may already have
+    # rounded it to float32)
+    given = concrete(x)
+    largest = float(np.finfo(dtype).max)
+    if given is not None and np.isfinite(given) and abs(float(given)) > largest:
+        raise ValueError(f"{where}: `{name}` = {float(given):g}{unit} lies beyond the range "
+                         f"of {np.dtype(dtype).name}, the dtype it is computed in "
+                         f"(+-{largest:.4g}).")
+    return arr.astype(dtype)
 
 
 def traced(x: Any) -> bool:

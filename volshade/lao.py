@@ -604,7 +604,7 @@ def _concrete(x) -> float | None:
         return None
     if arr.shape != () or not (np.issubdtype(arr.dtype, np.integer)
                                or np.issubdtype(arr.dtype, np.floating)):
-        return None  # a complex number is refused by name later, by _scalar
+        return None  # a complex number is refused by name later, by _checks.scalar
     return float(arr)
 
 
@@ -630,7 +630,10 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
                              f"got {directions}.")
         directions = _directions.fibonacci(int(directions))
     try:
-        dirs = jnp.asarray(directions)
+        # (this array is for the type and shape checks; with x64 off a float64 beyond
+        # float32 overflows here, which is not an error: the values are read below)
+        with np.errstate(over="ignore"):
+            dirs = jnp.asarray(directions)
     except (TypeError, ValueError) as err:  # ValueError: None, a ragged nested list
         raise TypeError(f"{where}: `directions` must be an (L, 3) array of unit vectors "
                         f"(e.g. `volshade.directions.icosphere(1)`) or an int L, "
@@ -645,10 +648,12 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
     if dirs.shape[0] == 0:
         raise ValueError(f"{where}: `directions` is empty (L = 0); pass at least one "
                          f"direction, e.g. `volshade.directions.icosphere(0)` (12 rays).")
-    dirs = dirs.astype(dtype)
     message = ("`directions` holds a zero or non-finite vector; every direction must be a "
                "non-zero finite 3-vector.")
-    xp, dirs = _checks.for_check(dirs)  # known directions: checked and scaled on the host
+    # known directions are checked and scaled on the host, as given in float64 (with x64
+    # off, jnp.asarray rounds them to float32 first, where 1e-50 is 0 and 1e40 inf)
+    known = _checks.concrete(directions)
+    xp, dirs = (jnp, dirs.astype(dtype)) if known is None else (np, known.astype(np.float64))
     peak = xp.max(xp.abs(dirs), axis=-1, keepdims=True)
     dirs = _checks.refuse(dirs, [(~xp.all(xp.isfinite(dirs)) | xp.any(peak == 0), message)],
                           where)
@@ -660,20 +665,6 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
     # 0 only for a refused zero row, kept finite
     norm = xp.sqrt(xp.sum(dirs * dirs, axis=-1, keepdims=True))
     return jnp.asarray(dirs / xp.where(norm == 0, 1, norm), dtype)
-
-
-def _scalar(value, name: str, dtype, where: str = _WHERE) -> Array:
-    if isinstance(value, str | bytes) or _checks.holds_bool(value):
-        raise TypeError(f"{where}: `{name}` must be a number (voxels), got {value!r}.")
-    try:
-        arr = _checks.as_float_array(value, name, where).astype(dtype)  # refuses complex
-    except TypeError as err:
-        raise TypeError(f"{where}: `{name}` must be a real number (voxels), "
-                        f"got {value!r:.80}.") from err
-    if arr.shape != ():
-        raise ValueError(f"{where}: `{name}` must be a scalar (voxels), got shape "
-                         f"{arr.shape}; for several values use `jax.vmap`.")
-    return arr
 
 
 def _weights_array(weights, n_dirs: int, where: str, *, batch: bool = False) -> Array:
@@ -723,8 +714,11 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     n_dirs = dirs.shape[0]
 
     # known values are checked as the march will use them, in its dtype: a float32 march
-    # would take a radius of 1.00000001 as an offset of 1, and 3.5e38 as inf
+    # would take a radius of 1.00000001 as an offset of 1 (3.5e38, which it would take as
+    # inf, is refused by _checks.scalar)
     r_given, a_given = _concrete(radius), _concrete(offset)
+    radius = _checks.scalar(radius, "radius", where, unit="voxels", dtype=dtype)
+    offset = _checks.scalar(offset, "offset", where, unit="voxels", dtype=dtype)
     r_value, a_value = _in_dtype(r_given, dtype), _in_dtype(a_given, dtype)
     working = f"in {jnp.dtype(dtype).name}, the dtype of the march"
     if a_value is not None and not (np.isfinite(a_value) and a_value >= 0):
@@ -741,8 +735,6 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
         if max_radius is not None and r_value > max_radius:
             raise ValueError(f"{where}: `radius` ({r_given!r}) exceeds `max_radius` "
                              f"({max_radius}); raise `max_radius`.")
-    radius = _scalar(radius, "radius", dtype, where)
-    offset = _scalar(offset, "offset", dtype, where)
     if r_value is None or a_value is None:  # known values were checked above, in NumPy
         alpha = _checks.refuse(alpha, [
             (~(offset >= 0) | ~jnp.isfinite(radius),
@@ -756,14 +748,18 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     if weights is None:
         weights = jnp.asarray(np.full((n_dirs,), 1 / n_dirs), dtype)
     else:
-        weights = _weights_array(weights, n_dirs, where).astype(dtype)
-        xp, w = _checks.for_check(weights)
+        with np.errstate(over="ignore"):  # (as for the directions)
+            checked = _weights_array(weights, n_dirs, where)
+        # known weights are checked and normalised on the host, as given in float64 (as
+        # the directions are)
+        known = _checks.concrete(weights)
+        xp, w = (jnp, checked.astype(dtype)) if known is None else (np, known.astype(np.float64))
         peak = xp.max(w)
         w = _checks.refuse(w, [(~xp.all(xp.isfinite(w)) | xp.any(w < 0) | ~(peak > 0),
                                 "`weights` must be finite, >= 0 and not all zero.")], where)
         # w / sum(w) through w / max(w): a float32 sum of weights of 1e38 overflows
         scaled = _divided(w, xp.where(peak > 0, peak, 1), xp)
-        weights = jnp.asarray(scaled / xp.sum(scaled), weights.dtype)
+        weights = jnp.asarray(scaled / xp.sum(scaled), dtype)
 
     bound = max_radius if max_radius is not None else r_value
     # a padding as wide as the (brick-aligned) volume makes clamped reads land in zeros

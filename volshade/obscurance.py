@@ -375,20 +375,7 @@ def _occluder_index(steps: Array, off_b: Array, off_c: Array) -> tuple[Array, Ar
 def _d_max(d_max: ArrayLike, dtype, where: str) -> Array:
     """``d_max`` as a scalar array: refused at once when concrete, at run time when
     traced (``_checks.refuse``)."""
-    if d_max is None or isinstance(d_max, bool | str | bytes):
-        raise TypeError(f"{where}: `d_max` must be a number (voxels), got {d_max!r}.")
-    try:
-        arr = jnp.asarray(d_max)
-    except TypeError as err:
-        raise TypeError(f"{where}: `d_max` must be a number, got {type(d_max).__name__}.") \
-            from err
-    # a bool would pass as 0 or 1, and a complex number would lose its imaginary part
-    if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.integer)):
-        raise TypeError(f"{where}: `d_max` must be a real number (voxels), got {d_max!r}.")
-    arr = arr.astype(dtype)
-    if arr.ndim != 0:
-        raise ValueError(f"{where}: `d_max` must be a scalar (voxels), got shape {arr.shape}; "
-                         f"for several values use `jax.vmap`.")
+    arr = _checks.scalar(d_max, "d_max", where, unit="voxels", dtype=dtype)
     return _checks.refuse(arr, _d_max_problems(arr), where)
 
 
@@ -749,7 +736,7 @@ def threshold(
     dtype = obscurance.dtype
     # a bool is refused, not read as 0 or 1 (as ObscuranceParams refuses it)
     given = low, high
-    low, high = (_checks.scalar(v, name, where).astype(dtype)
+    low, high = (_checks.scalar(v, name, where, dtype=dtype)
                  for v, name in ((low, "low"), (high, "high")))
     if all(isinstance(v, int | float) for v in given) and given[0] > given[1]:
         raise ValueError(f"{where}: `low` must be <= `high`, got low={given[0]}, "
@@ -848,7 +835,7 @@ def obscurance_shading(
     if obscurance.shape not in (batch, (*batch, 3)):
         raise ValueError(f"{where}: `obscurance` must have shape {batch} (grey) or "
                          f"{(*batch, 3)} (RGB) to match `normal`, got {obscurance.shape}.")
-    coefficients = {name: _checks.scalar(v, name, where).astype(dtype)
+    coefficients = {name: _checks.scalar(v, name, where, dtype=dtype)
                     for v, name in ((k_d, "k_d"), (k_s, "k_s"), (shininess, "shininess"))}
     xp, *values = _checks.for_check(*coefficients.values())
     known = dict(zip(coefficients, values, strict=True))
