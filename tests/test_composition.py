@@ -814,3 +814,19 @@ def test_unroll_changes_no_value_or_gradient_and_defaults_by_backend(monkeypatch
         monkeypatch.setattr(jax, "default_backend", lambda backend=backend: backend)
         composite(c, a)
     assert seen == [1, 8]
+
+
+def test_a_traced_background_is_checked_in_a_gradient_of_the_samples():
+    # found by a review: a traced background's check was tied to the background, which a
+    # gradient w.r.t. the colours alone does not need, so it was left out and a NaN
+    # background gave a gradient without a word
+    c, a, imp = random_rays(4, 5, seed=1)
+    standard = eqx.filter_jit(jax.grad(lambda c, bg: jnp.sum(composite(c, a, background=bg))))
+    assert np.all(np.isfinite(standard(c, jnp.full(3, 0.5))))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="`background` contains NaN or inf"):
+        standard(c, jnp.asarray([jnp.nan, 0.0, 0.0]))
+    aware = eqx.filter_jit(jax.grad(lambda c, bgi: jnp.sum(composite(
+        c, a, importance=imp, background=jnp.ones(3), background_importance=bgi))))
+    assert np.all(np.isfinite(aware(c, jnp.asarray(0.5))))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="`background_importance` must be finite"):
+        aware(c, jnp.asarray(jnp.inf))

@@ -127,3 +127,18 @@ def test_intensity_density_without_colours_needs_no_classification():
     with pytest.raises(ValueError, match="outside the transfer function's control points"):
         vs.ObscuranceParams(d_max=4.0, level=0, density="intensity", color_bleeding=True)(
             vol, vs.transfer.preset("shells"))
+
+
+@pytest.mark.parametrize("module", ["obscurance", "saliency"])
+def test_smoothing_wider_than_the_volume_is_refused(module):
+    # `volshade render --smoothing 1e9` ran out of memory (a kernel of 8e9 taps) with a
+    # message that did not name the option; a sigma beyond the longest side is refused
+    vol = jnp.zeros((6, 8, 5))
+    tf = vs.transfer.preset("grey")
+    make = (lambda s: vs.ObscuranceParams(d_max=2.0, level=0, smoothing=s)) if module == \
+        "obscurance" else (lambda s: vs.SaliencyModulation(d_max=2.0, level=0, smoothing=s))
+    where = "ObscuranceParams" if module == "obscurance" else "SaliencyModulation"
+    with pytest.raises(ValueError, match=rf"volshade.{where}: `smoothing` \(1e\+09 voxels\) "
+                                         rf"must be at most the volume's longest side, 8"):
+        make(1e9)(vol, tf)
+    assert make(8.0)(vol, tf).shape[:3] == vol.shape

@@ -799,10 +799,15 @@ def composite(
         bg = jnp.zeros((*batch, 3), dtype)
     else:
         # checked as given, then cast: rounded to half-precision samples first, -1e-8
-        # would pass as -0 and 1e5 be refused as inf
-        bg = _checks.finite(_checks.numbers(background, "background", where),
-                            "background", where, non_negative=True,
-                            hint="(an RGB colour; light is not negative)").astype(dtype)
+        # would pass as -0 and 1e5 be refused as inf. A traced background's check rides
+        # on _checked_zero with the samples': on the background itself it would be left
+        # out of a gradient that does not need the background's value
+        bg = _checks.numbers(background, "background", where)
+        bg_problems = _checks.finite_problems(bg, "background", non_negative=True,
+                                              hint="(an RGB colour; light is not negative)")
+        _checks.refuse(None, bg_problems, where, traced=False)
+        problems += bg_problems
+        bg = bg.astype(dtype)
         if bg.shape[-1:] != (3,) or not _checks.broadcasts(bg.shape, (*batch, 3)):
             raise ValueError(f"{where}: `background` must be an RGB colour that broadcasts to "
                              f"the rays, (..., 3) = {(*batch, 3)}, got {bg.shape}.")
@@ -820,11 +825,13 @@ def composite(
         if not _checks.broadcasts(bg_imp.shape, batch):
             raise ValueError(f"{where}: `background_importance` must broadcast to the rays, "
                              f"(...) = {batch}, got {bg_imp.shape}.")
-        bg_imp = _checks.refuse(
-            bg_imp.astype(dtype), [(jnp.any(jnp.isnan(bg_imp) | (bg_imp == jnp.inf)),
-                                    "`background_importance` must be finite or -inf (no "
-                                    "background importance), got NaN or +inf.")], where)
-        bg_imp = jnp.broadcast_to(bg_imp, batch)
+        xp, given = _checks.for_check(bg_imp)
+        bg_imp_problems = [(xp.any(xp.isnan(given) | (given == xp.inf)),
+                            "`background_importance` must be finite or -inf (no background "
+                            "importance), got NaN or +inf.")]
+        _checks.refuse(None, bg_imp_problems, where, traced=False)
+        importance_problems += bg_imp_problems
+        bg_imp = jnp.broadcast_to(bg_imp.astype(dtype), batch)
     return _composite(colors, alphas, importance, bg, bg_imp,
                       _checked_zero(problems + importance_problems, dtype, where), unroll=unroll)
 

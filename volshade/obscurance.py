@@ -385,17 +385,28 @@ def _d_max_problems(d_max: Array) -> list[tuple[Array, str]]:
              "`d_max` must be a finite distance > 0 (voxels).")]
 
 
-def _gaussian_smooth(volume: Float[Array, "D H W"], sigma: float) -> Float[Array, "D H W"]:
+def _gaussian_smooth(volume: Float[Array, "D H W"], sigma: float,
+                     where: str = "volshade.ObscuranceParams") -> Float[Array, "D H W"]:
     """Separable Gaussian blur of a volume, as ``skimage.filters.gaussian(volume, sigma,
     mode="nearest", truncate=4.0, preserve_range=True)`` computes it, but traceable
     (the density may depend on transfer-function parameters under ``jit``).
 
     Args:
         volume: ``(D, H, W)`` values.
-        sigma: standard deviation in voxels (static, > 0); the kernel is truncated at
-            ``4 sigma`` and normalised, and the edges are extended (``"nearest"``).
+        sigma: standard deviation in voxels (static, > 0, at most the longest side of
+            ``volume``); the kernel is truncated at ``4 sigma`` and normalised, and the
+            edges are extended (``"nearest"``).
+        where: the caller, named in errors.
     """
-    volume = _checks.as_working_float(volume, "volume", "volshade.ObscuranceParams")
+    volume = _checks.as_working_float(volume, "volume", where)
+    # a sigma beyond the volume's longest side blurs every line to nearly its two edge
+    # values, and one of 1e9 voxels would make a kernel of 8e9 taps (out of memory):
+    # refused by name rather than computed
+    longest = max(volume.shape)
+    if sigma > longest:
+        raise ValueError(f"{where}: `smoothing` ({sigma:g} voxels) must be at most the "
+                         f"volume's longest side, {longest} voxels (a wider Gaussian blurs "
+                         f"the density to its edge values).")
     radius = int(4.0 * sigma + 0.5)
     x = np.arange(-radius, radius + 1)
     kernel = np.exp(-0.5 * (x / sigma) ** 2)

@@ -651,7 +651,7 @@ class SaliencyModulation(eqx.Module):
         voxels of ``spacing`` mm (the scene's) for the saliency's regression gradient."""
         density = transfer.opacity(volume)
         if self.smoothing > 0:
-            density = _gaussian_smooth(density, self.smoothing)
+            density = _gaussian_smooth(density, self.smoothing, "volshade.SaliencyModulation")
         obs = obscurance(density, directions=icosphere_points(self.level), d_max=self.d_max,
                          rho=self.rho)
         # the saliency computed here lies in [0, 1]: no value check in the renderer's trace
