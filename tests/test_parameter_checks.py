@@ -3,6 +3,7 @@ refused with a message that names the argument (found by a new-user walkthrough)
 
 import dataclasses
 import re
+import sys
 
 import equinox as eqx
 import jax
@@ -634,3 +635,48 @@ def test_lists_set_with_tree_at_become_arrays_and_dicts_are_refused_by_path():
         with pytest.raises(TypeError, match=re.escape(f"volshade.render: `{name}` must be an "
                                                       f"array, got a")):
             vs.render(eqx.tree_at(where, scene, value), CAM)
+
+
+def test_mistakes_a_new_user_made_are_named():
+    # found by a new-user walkthrough; each was accepted, or refused without the fix
+    cam = vs.Camera.orbit(image_shape=(4, 4))
+    scene = vs.Scene(volume=VOL, transfer=TF, ambient="lao",
+                     lao=vs.LocalAmbientOcclusion(2.0, directions=4, samples=2, max_radius=6.0))
+    target = vs.render(scene, cam)
+    # a float target of 0-255 ended with the solver's "maximum number of steps"; noise a
+    # little outside [0, 1] is kept
+    with pytest.raises(ValueError, match=r"fit: `target` holds values far outside \[0, 1\], "
+                                         r"where renders lie \(beyond \[-1, 2\]\); divide"):
+        vs.fit(scene, cam, target * 255, params=("lao.radius",))
+    noisy = target + 0.05 * jax.random.normal(jax.random.PRNGKey(0), target.shape)
+    assert float(jnp.min(noisy)) < 0
+    ((_, kept, _),) = sys.modules["volshade.fit"]._views(cam, noisy, None)
+    np.testing.assert_array_equal(kept, noisy)
+    # bounds beyond the static max_radius stopped the fit with the kernel's error
+    with pytest.raises(ValueError, match=r"the bounds of 'lao.radius' reach 20, beyond "
+                                         r"`lao.max_radius` \(6, static\)"):
+        vs.fit(scene, cam, target, params={"lao.radius": (1.5, 20.0)})
+    # an interval outside the transfer function's points selected nothing: AO 1
+    for interval in ((40.0, 100.0), (1.2, 2.0)):
+        with pytest.raises(ValueError, match=r"features\[0\], the interval .* lies outside "
+                                             r"`base`'s control points \[0, 1\]"):
+            vs.feature_ao(VOL, features=[vs.IntervalFeature(*interval)], base=TF,
+                          directions=4, radius=2.0)
+    # an effect's parameters, or a volume, where its option's name goes: a warning and
+    # the whole array printed in the error
+    with pytest.raises(ValueError, match=r"`shading` must name an option, one of 'none', "
+                                         r"'phong', 'obscurance', got Phong; Phong "
+                                         r"coefficients go in `phong=`"):
+        vs.Scene(volume=VOL, transfer=TF, shading=vs.Phong())
+    with pytest.raises(ValueError, match=r"`ambient` must name an option.* got ndarray; an "
+                                         r"ambient volume of your own goes in `ambient_volume=`"):
+        vs.Scene(volume=VOL, transfer=TF, ambient=np.ones(VOL.shape))
+    # a transfer function, or its method, where its values go
+    with pytest.raises(TypeError, match=r"`alpha` must be an array .* got TransferFunction; "
+                                        r"classify the volume first, e.g. `tf.opacity\(volume\)`"):
+        vs.lao(TF, directions=4, radius=2.0)
+    with pytest.raises(TypeError, match=r"`colors` must be an array .* classify the volume"):
+        vs.obscurance(TF.opacity(VOL), directions=icosphere(0), d_max=4.0, colors=TF.color)
+    # 0-255 colours composited to values up to 255
+    with pytest.raises(TypeError, match=r"composite: `colors` has the integer dtype uint8"):
+        vs.composite(np.full((2, 3, 3), 200, np.uint8), np.full((2, 3), 0.5))

@@ -24,8 +24,13 @@ def as_float_array(x: Any, name: str, where: str) -> Array:
     try:
         arr = jnp.asarray(x)
     except (TypeError, ValueError) as err:  # ValueError: None, a ragged nested list
+        # a transfer function or its method where its values belong (DESIGN.md's
+        # `colors=tf.color`): say what to call
+        classifier = any(hasattr(v, "opacity") for v in (x, getattr(x, "__self__", None)))
+        hint = ("; classify the volume first, e.g. `tf.opacity(volume)` or "
+                "`tf.color(volume)`" if classifier else "")
         raise TypeError(f"{where}: `{name}` must be an array of numbers (or a rectangular "
-                        f"nested list of them), got {type(x).__name__}.") from err
+                        f"nested list of them), got {type(x).__name__}{hint}.") from err
     if jnp.issubdtype(arr.dtype, jnp.floating):
         return arr
     if jnp.issubdtype(arr.dtype, jnp.integer) or arr.dtype == jnp.bool_:
@@ -409,10 +414,16 @@ def spacing(value: Any, where: str) -> tuple[float, float, float]:
     return tuple(float(v) for v in vals)
 
 
-def option(value: Any, table: Mapping[str, Any], name: str, where: str) -> Any:
-    """Look ``value`` up in a dispatch table, listing the valid names on failure."""
-    if not isinstance(value, str) or value not in table:
-        valid = ", ".join(repr(k) for k in table)
+def option(value: Any, table: Mapping[str, Any], name: str, where: str, *,
+           hint: str = "") -> Any:
+    """Look ``value`` up in a dispatch table, listing the valid names on failure; a value
+    that is not a name (an array, a parameter module) is named by its type, followed by
+    ``hint`` (where what it is goes instead), not printed whole."""
+    valid = ", ".join(repr(k) for k in table)
+    if not isinstance(value, str):
+        raise ValueError(f"{where}: `{name}` must name an option, one of {valid}, got "
+                         f"{type(value).__name__}{'; ' + hint if hint else ''}.")
+    if value not in table:
         raise ValueError(f"{where}: unknown {name} {value!r}; valid values are {valid}.")
     return table[value]
 

@@ -50,6 +50,7 @@ from jax.custom_derivatives import SymbolicZero
 from . import _checks
 from ._types import Array, ArrayLike, Float
 from .camera import Camera
+from .lao import LocalAmbientOcclusion
 from .scene import _PARAMETERS, Scene, _check_cameras, render
 
 _WHERE = "volshade.fit"
@@ -287,6 +288,16 @@ def _parameters(scene: Scene, params: Any
         raise ValueError(f"{_WHERE}: `params` is empty; name at least one parameter, e.g. "
                          f"params=('lao.radius',).")
     where, values = zip(*(_parameter(scene, path) for path in named), strict=True)
+    for (path, (_, high)), p in zip(named.items(), where, strict=True):
+        owner, _, leaf = p.field.rpartition(".")
+        module = _at(scene, owner) if owner else scene
+        # a static bound: the fit would stop with the kernel's error once a step passed it
+        if (leaf == "radius" and isinstance(module, LocalAmbientOcclusion) and high is not None
+                and module.max_radius is not None and high > module.max_radius):
+            raise ValueError(f"{_WHERE}: the bounds of {path!r} reach {high:g}, beyond "
+                             f"`{owner}.max_radius` ({module.max_radius:g}, static): lower the "
+                             f"upper bound, or build the scene's LocalAmbientOcclusion with "
+                             f"max_radius={high:g}.")
     for (a, pa), (b, pb) in itertools.combinations(zip(named, where, strict=True), 2):
         short = min(len(pa.index), len(pb.index))
         if pa.field == pb.field and pa.index[:short] == pb.index[:short]:
@@ -339,7 +350,15 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
                              f"{cam.image_shape} must have shape {shape} (RGBA, as "
                              f"volshade.render returns) or {shape[:2] + (3,)} (RGB), got "
                              f"{tuple(tgt.shape)}.")
+        # a float image of 0-255 would fit nonsense, and end with the solver's "maximum
+        # number of steps" error, which does not name the target; noise a little outside
+        # [0, 1] (a noisy photograph, a render plus noise) is a target like any other
         tgt = _checks.finite(tgt, "target", _WHERE)
+        xp, values = _checks.for_check(tgt)
+        tgt = _checks.refuse(tgt, [(xp.any((values < -1) | (values > 2)),
+                                    "`target` holds values far outside [0, 1], where renders "
+                                    "lie (beyond [-1, 2]); divide an image of 0-255 by 255 "
+                                    "(e.g. `skimage.util.img_as_float`).")], _WHERE)
         if w is not None:
             w = _checks.as_float_array(w, "weights", _WHERE)
             # a 2-D array is a weight per pixel: of another shape it could as well be
@@ -554,8 +573,10 @@ def fit(
             no gradient (``lao.directions``, an interval feature's ends, a clip's pose
             and sizes, the saliency threshold, a circular or screen-door focus's centre
             and radius), bad bounds or an initial value outside them or not finite
-            (a background importance of ``-inf``), targets or
-            weights that do not match the cameras, a solver of another kind.
+            (a background importance of ``-inf``), an LAO radius's upper bound above
+            its ``max_radius``, targets or weights that do not match the cameras,
+            targets far outside [0, 1] (beyond [-1, 2]: an image of 0-255; an integer
+            image is a ``TypeError``), a solver of another kind.
         equinox.EquinoxRuntimeError: a parameter the render does not depend on at its
             initial value (every derivative of the image in it exactly 0: a weight of
             0 switches it off) and that the fit left there, named with the settings

@@ -119,6 +119,14 @@ _PARAMETERS: dict[str, tuple[type, str, tuple[str, ...], bool]] = {
 }
 
 
+def _option(name: str, table: dict, hint: str = "") -> Callable[[Any], str]:
+    """The converter of an option field: the name itself, checked against ``table``."""
+    def check(value: Any) -> str:
+        _checks.option(value, table, name, _WHERE, hint=hint)
+        return value
+    return check
+
+
 def _changed(value: eqx.Module, kind: type) -> Any:
     """Whether effect parameters differ from their type's defaults: a bool, or a traced
     one where their values are traced (a copy under ``jit``)."""
@@ -258,24 +266,33 @@ class Scene(eqx.Module):
                                                     converter=lambda s: _checks.spacing(s, _WHERE))
     step: float = eqx.field(static=True, default=0.5,  # a Python float, as spacing's
                             converter=lambda s: _checks.positive_float(s, "step", _WHERE))
-    ambient: str = eqx.field(static=True, default="none")
+    # (options are checked by their converters, before equinox warns of an array or a
+    # module given in their place)
+    ambient: str = eqx.field(static=True, default="none", converter=_option(
+        "ambient", AMBIENT, "an ambient volume of your own goes in `ambient_volume=`, with "
+                            "ambient='volume'; LAO parameters in `lao=`"))
     ambient_volume: Array | None = eqx.field(
         default=None, converter=lambda v: None if v is None else _as_array(v))
     lao: LocalAmbientOcclusion | None = None
     feature_ao: FeatureAmbientOcclusion | None = None
     obscurance: ObscuranceParams | None = None
-    modulation: str = eqx.field(static=True, default="none")
+    modulation: str = eqx.field(static=True, default="none", converter=_option(
+        "modulation", MODULATION, "saliency parameters go in `saliency=`"))
     saliency: SaliencyModulation | None = None
-    shading: str = eqx.field(static=True, default="none")
+    shading: str = eqx.field(static=True, default="none", converter=_option(
+        "shading", SHADERS, "Phong coefficients go in `phong=`, with shading='phong'"))
     phong: Phong | None = None
-    composition: str = eqx.field(static=True, default="standard")
+    composition: str = eqx.field(static=True, default="standard", converter=_option(
+        "composition", COMPOSITORS, "importance weights go in `importance=`, with "
+                                    "composition='importance'"))
     importance: Importance | None = None
     focus: Focus | None = None
     background: Float[Array, "3"] = eqx.field(
         converter=_checks.leaf("volshade.Scene", "background"), default=(0.0, 0.0, 0.0))
     clip: Clip | None = None
     # last: the fields before it keep their positions
-    classification: str = eqx.field(static=True, default="post")
+    classification: str = eqx.field(static=True, default="post", converter=_option(
+        "classification", _CLASSIFICATIONS))
     # the effect parameters __post_init__ filled in (not given): a copy that turns their
     # effect off (dataclasses.replace) drops them, where given ones are refused
     _defaulted: tuple[str, ...] = eqx.field(static=True, default=(), repr=False)
@@ -286,7 +303,7 @@ class Scene(eqx.Module):
             if not has_defaults:
                 continue
             value, option = getattr(self, name), getattr(self, stage)
-            used = option in users
+            used = isinstance(option, str) and option in users  # (others: the converter's)
             if value is None and used:
                 setattr(self, name, kind())
                 defaulted.add(name)
@@ -313,11 +330,6 @@ class Scene(eqx.Module):
         if not isinstance(self.transfer, TransferFunction):
             raise TypeError(f"{_WHERE}: `transfer` must be a volshade.TransferFunction, "
                             f"got {type(self.transfer).__name__}.")
-        _checks.option(self.ambient, AMBIENT, "ambient", _WHERE)
-        _checks.option(self.modulation, MODULATION, "modulation", _WHERE)
-        _checks.option(self.shading, SHADERS, "shading", _WHERE)
-        _checks.option(self.composition, COMPOSITORS, "composition", _WHERE)
-        _checks.option(self.classification, _CLASSIFICATIONS, "classification", _WHERE)
         if self.ambient == "volume" and self.ambient_volume is None:
             raise ValueError(f"{_WHERE}: ambient='volume' needs `ambient_volume`.")
         if self.ambient != "volume" and self.ambient_volume is not None:

@@ -375,10 +375,28 @@ def _feature_opacities(volume, features, base, step, where: str) -> Array:
         if base is None:
             raise ValueError(f"{where}: features[{i}] is an interval; pass `base=` "
                              f"the transfer function it selects from.")
+        _check_interval_meets(feature, base, i, where)
         if base_opacity is None:
             base_opacity = base.opacity(volume, step=step)
         out.append(feature._select(volume, base_opacity))
     return jnp.stack(out)
+
+
+def _check_interval_meets(feature: "IntervalFeature", base: TransferFunction, i: int,
+                          where: str) -> None:
+    """Refuse, when known, an interval that lies outside ``base``'s control points: the
+    volume's values lie within them (``base.opacity`` refuses others), so it would select
+    no voxel, and its feature's AO would be 1 everywhere without a word (an interval
+    written in raw intensities, e.g. (40, 100), for a normalised volume)."""
+    known = _checks.concrete((feature.low, feature.high, base.points[0], base.points[-1]))
+    if known is None:
+        return
+    low, high, first, last = (float(v) for v in known)
+    if high < first or low > last:
+        raise ValueError(f"{where}: features[{i}], the interval [{low:g}, {high:g}], lies "
+                         f"outside `base`'s control points [{first:g}, {last:g}], which "
+                         f"every value of the volume lies within: it selects no voxel. "
+                         f"Give it in the volume's values (e.g. normalised to [0, 1]).")
 
 
 def _check_feature_range(feature: TransferFunction, dtype, extent: np.ndarray | None, i: int,
