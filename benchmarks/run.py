@@ -25,6 +25,7 @@ import datetime
 import hashlib
 import importlib
 import json
+import math
 import pathlib
 import platform
 import subprocess
@@ -50,6 +51,17 @@ def _format_table(rows: list[dict]) -> str:
     lines.append("  ".join("-" * w for w in widths))
     lines += ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)) for r in cells]
     return "\n".join(lines)
+
+
+def _strict(value):
+    """``value`` with every non-finite float made ``None`` (JSON has no NaN or inf)."""
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_strict(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _commit() -> str:
@@ -111,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"# {result['notes']}")
     out = args.json or pathlib.Path(__file__).parent / "results" / f"{args.name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2, default=float))
+    # strict JSON: a NaN or inf (a figure that could not be measured) is written as null
+    out.write_text(json.dumps(_strict(result), indent=2, default=float, allow_nan=False))
     print(f"# wrote {out}")
     return 0
 

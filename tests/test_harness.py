@@ -40,3 +40,21 @@ def test_sources_digest_follows_the_sources_and_nothing_else(tmp_path):
     assert edited != first
     source.rename(tmp_path / "volshade" / "lao_renamed.py")  # a path counts too
     assert run.sources_digest(tmp_path) not in (first, edited)
+
+
+def test_the_record_is_strict_json(monkeypatch, tmp_path):
+    # found by a review: a NaN (a row with nothing to time) was written as a bare NaN
+    # token, which is not JSON (a browser's JSON.parse refuses the file)
+    result = {"title": "fake", "rows": [{"case": "agree", "median_s": float("nan"),
+                                         "max": float("inf")}], "ratios": {"r": 2.0}}
+    module = types.SimpleNamespace(run=lambda quick: result)
+    monkeypatch.setattr(run.importlib, "import_module", lambda name: module)
+    out = tmp_path / "r.json"
+    assert run.main(["fit", "--json", str(out)]) == 0
+
+    def refuse(token):
+        raise ValueError(token)
+
+    record = json.loads(out.read_text(), parse_constant=refuse)
+    assert record["rows"] == [{"case": "agree", "median_s": None, "max": None}]
+    assert record["ratios"] == {"r": 2.0}
