@@ -30,6 +30,28 @@ def time_fn(fn: Callable, *args, repeats: int = 5) -> dict:
     return {"first_call_s": first, "median_s": statistics.median(times), "times_s": times}
 
 
+def time_fns(fns: dict[str, Callable], *args, repeats: int = 5) -> dict[str, dict]:
+    """:func:`time_fn` of each of ``fns`` on the same ``args``, interleaved: every round
+    times each function once, in an order rotated from round to round, so that a
+    shared machine's slow spells fall on all of them alike and their ratio holds (timed
+    one after the other, a bricked/unbricked ratio of about 1 measured 2 in one run).
+    The first calls (compile + run) come before the rounds."""
+    out = {}
+    for name, fn in fns.items():
+        t0 = time.perf_counter()
+        block(fn(*args))
+        out[name] = {"first_call_s": time.perf_counter() - t0, "times_s": []}
+    names = list(fns)
+    for k in range(repeats):
+        for name in names[k % len(names):] + names[:k % len(names)]:
+            t0 = time.perf_counter()
+            block(fns[name](*args))
+            out[name]["times_s"].append(time.perf_counter() - t0)
+    for result in out.values():
+        result["median_s"] = statistics.median(result["times_s"])
+    return out
+
+
 def fit_exponent(sizes: list[float], times: list[float]) -> float:
     """Least-squares slope of log(time) against log(size)."""
     import numpy as np

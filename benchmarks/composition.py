@@ -3,7 +3,8 @@
 Both run through :func:`volshade.composite` on the same random float32 rays
 (premultiplied colours, opacities, importances), forward and forward + reverse
 gradient (w.r.t. colours and opacities, plus importances for the importance
-compositor), in one process. Goal: importance <= 1.5x standard.
+compositor), in one process, the two compositors of each mode timed interleaved.
+Goal: importance <= 1.5x standard.
 
 On a CPU, ``composite`` computes values reading 8 (importance: 4) samples of every ray
 per loop iteration where they lie; the forward rows "(scan)" time the same steps as a
@@ -14,7 +15,7 @@ reverse mode and other platforms run, and what the CPU ran before.
 import jax
 import jax.numpy as jnp
 
-from benchmarks._timing import time_fn
+from benchmarks._timing import time_fns
 from volshade.composition import (
     _samples,
     _scan,
@@ -57,19 +58,22 @@ def run(quick: bool) -> dict:
     rows, medians = [], {}
     n_total = n_rays * n_samples
 
-    def timed(case, mode, f):
-        t = time_fn(f, colors, alphas, importance, repeats=repeats)
-        medians[(case, mode)] = t["median_s"]
-        rows.append({"case": f"{case} {mode}", "median_s": t["median_s"],
-                     "first_call_s": t["first_call_s"],
-                     "Msamples_per_s": n_total / t["median_s"] / 1e6})
-
-    for name, fn in cases.items():
+    def gradient(name, fn):
         argnums = (0, 1) if name == "standard" else (0, 1, 2)
-        timed(name, "forward", jax.jit(fn))
-        timed(name, "forward (scan)", jax.jit(scans[name]))
-        timed(name, "forward+grad", jax.jit(jax.grad(lambda c, a, i, fn=fn: jnp.sum(fn(c, a, i)),
-                                                     argnums=argnums)))
+        return jax.jit(jax.grad(lambda c, a, i: jnp.sum(fn(c, a, i)), argnums=argnums))
+
+    # the two compositors of each mode timed interleaved (benchmarks._timing.time_fns)
+    modes = {"forward": lambda name, fn: jax.jit(fn),
+             "forward (scan)": lambda name, fn: jax.jit(scans[name]),
+             "forward+grad": gradient}
+    for mode, make in modes.items():
+        timed = time_fns({name: make(name, fn) for name, fn in cases.items()}, colors, alphas,
+                         importance, repeats=repeats)
+        for name, t in timed.items():
+            medians[(name, mode)] = t["median_s"]
+            rows.append({"case": f"{name} {mode}", "median_s": t["median_s"],
+                         "first_call_s": t["first_call_s"],
+                         "Msamples_per_s": n_total / t["median_s"] / 1e6})
     ratios = {
         "importance/standard forward": medians[("importance", "forward")]
         / medians[("standard", "forward")],

@@ -29,7 +29,7 @@ from jax.scipy.ndimage import map_coordinates
 import volshade.directions as vdirs
 from volshade.lao import _active_bricks, lao
 
-from ._timing import fit_exponent, report, report_ratios, time_fn
+from ._timing import fit_exponent, report, report_ratios, time_fn, time_fns
 
 
 def _shells(n: int) -> jax.Array:
@@ -104,8 +104,8 @@ def run(quick: bool) -> dict:
     alpha = _shells(n_head)
     fast = _fast(dirs, samples, max_radius=radius)
     naive = jax.jit(lambda a, r: gather_lao(a, dirs, r, jnp.float32(1.0), samples))
-    t_fast = time_fn(fast, alpha, r32, repeats=repeats)
-    t_naive = time_fn(naive, alpha, r32, repeats=repeats)
+    t_fast, t_naive = time_fns({"fast": fast, "naive": naive}, alpha, r32,
+                               repeats=repeats).values()
     err = float(jnp.max(jnp.abs(fast(alpha, r32) - naive(alpha, r32))))
     for case, t in (("volshade.lao 128^3 L16 M16", t_fast), ("gather 128^3 L16 M16", t_naive)):
         rows.append({"case": case, "median_s": t["median_s"], "first_call_s": t["first_call_s"],
@@ -136,8 +136,7 @@ def run(quick: bool) -> dict:
     loss = lambda a, r: jnp.sum(lao(a, directions=dirs, radius=r, offset=1.0,  # noqa: E731
                                     samples=samples, max_radius=24.0))
     both = jax.jit(jax.value_and_grad(loss, (0, 1)))
-    t_f = time_fn(fwd, a, r32, repeats=repeats)
-    t_b = time_fn(both, a, r32, repeats=repeats)
+    t_f, t_b = time_fns({"forward": fwd, "both": both}, a, r32, repeats=repeats).values()
     rows.append({"case": f"forward {n_grad}^3 L16 M16", "median_s": t_f["median_s"],
                  "first_call_s": t_f["first_call_s"]})
     rows.append({"case": f"forward+grad(alpha, radius) {n_grad}^3 L16 M16",
@@ -167,8 +166,8 @@ def run(quick: bool) -> dict:
     for name, a in volumes:
         plain = _fast(dirs, samples, max_radius=8.0)
         bricked = _fast(dirs, samples, max_radius=8.0, brick_size=16)
-        t_p = time_fn(plain, a, r8, repeats=repeats)
-        t_k = time_fn(bricked, a, r8, repeats=repeats)
+        t_p, t_k = time_fns({"plain": plain, "bricked": bricked}, a, r8,
+                            repeats=repeats).values()
         shape = "x".join(map(str, a.shape))
         rows.append({"case": f"{name} {shape} R8 unbricked", "median_s": t_p["median_s"],
                      "first_call_s": t_p["first_call_s"]})
@@ -295,8 +294,7 @@ def run_gpu(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: float = 5
     r16 = jnp.float32(16.0)
     fast = _fast(d16, 16, max_radius=16.0)
     naive = jax.jit(lambda a, rr: gather_lao(a, d16, rr, jnp.float32(1.0), 16))
-    t1 = time_fn(fast, small, r16, repeats=repeats)
-    t2 = time_fn(naive, small, r16, repeats=repeats)
+    t1, t2 = time_fns({"fast": fast, "naive": naive}, small, r16, repeats=repeats).values()
     report(rows, {"case": f"volshade {n_gather}^3 L16 M16", "median_s": t1["median_s"],
                   **_rates(small.size, 16, 16, t1["median_s"])})
     report(rows, {"case": f"gather {n_gather}^3 L16 M16", "median_s": t2["median_s"],

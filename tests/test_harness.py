@@ -6,6 +6,7 @@ import shutil
 import types
 
 from benchmarks import run
+from benchmarks._timing import time_fns
 
 
 def test_the_record_names_the_given_commit_and_the_sources_that_ran(monkeypatch, tmp_path):
@@ -58,3 +59,20 @@ def test_the_record_is_strict_json(monkeypatch, tmp_path):
     record = json.loads(out.read_text(), parse_constant=refuse)
     assert record["rows"] == [{"case": "agree", "median_s": None, "max": None}]
     assert record["ratios"] == {"r": 2.0}
+
+
+def test_compared_functions_are_timed_interleaved():
+    calls = []
+
+    def fn(name):
+        def call(x):
+            calls.append(name)
+            return x
+        return call
+
+    out = time_fns({"a": fn("a"), "b": fn("b"), "c": fn("c")}, 1.0, repeats=3)
+    # first calls apart, then rounds of one call each, in rotated order
+    assert calls == ["a", "b", "c", "a", "b", "c", "b", "c", "a", "c", "a", "b"]
+    for result in out.values():
+        assert len(result["times_s"]) == 3 and result["first_call_s"] >= 0
+        assert result["median_s"] == sorted(result["times_s"])[1]
