@@ -88,19 +88,6 @@ def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
     return arr
 
 
-def set_leaf(value: Any, name: str, where: str) -> None:
-    """Refuse a parameter leaf that is not a real number or an array of them, as its
-    field's converter (:func:`float_leaf`) would have: one set with ``eqx.tree_at`` skips
-    the converter, and a bool would then pass as 0 or 1, a string or ``None`` fail
-    inside JAX without the field's name."""
-    if holds_bool(value) or not (
-            isinstance(value, float | int) or (eqx.is_array(value) and (
-                jnp.issubdtype(value.dtype, jnp.floating)
-                or jnp.issubdtype(value.dtype, jnp.integer)))):
-        raise TypeError(f"{where}: `{name}` must be a real number or an array of them, "
-                        f"got {value!r:.80}.")
-
-
 def strongly_typed(tree: Any, dtype: Any) -> Any:
     """``tree`` with each weakly typed floating leaf (a Python number that a
     converter made an array) made a strongly typed array of the dtype it promotes to

@@ -124,7 +124,7 @@ class Camera(eqx.Module):
         types and shapes are checked (raising at once): a field set with ``eqx.tree_at``
         skips the constructor's checks."""
         for name in ("eye", "target", "up", "fov", "width"):
-            _checks.set_leaf(getattr(self, name), name, "volshade.Camera")
+            _checks.float_leaf(getattr(self, name), name, "volshade.Camera")
         for name in ("eye", "target", "up"):
             if jnp.shape(getattr(self, name)) != (3,):
                 raise ValueError(f"volshade.Camera: `{name}` must have shape (3,), "

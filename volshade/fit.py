@@ -353,9 +353,9 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
         # a float image of 0-255 would fit nonsense, and end with the solver's "maximum
         # number of steps" error, which does not name the target; noise a little outside
         # [0, 1] (a noisy photograph, a render plus noise) is a target like any other
-        tgt = _checks.finite(tgt, "target", _WHERE)
         xp, values = _checks.for_check(tgt)
-        tgt = _checks.refuse(tgt, [(xp.any((values < -1) | (values > 2)),
+        tgt = _checks.refuse(tgt, [*_checks.finite_problems(tgt, "target"),
+                                   (xp.any((values < -1) | (values > 2)),
                                     "`target` holds values far outside [0, 1], where renders "
                                     "lie (beyond [-1, 2]); divide an image of 0-255 by 255 "
                                     "(e.g. `skimage.util.img_as_float`).")], _WHERE)

@@ -76,7 +76,8 @@ class Phong(eqx.Module):
         and at once where they are not scalars (a batch of settings is for vmap)."""
         for name in self._COEFFICIENTS:
             value = getattr(self, name)
-            _checks.set_leaf(value, name, "volshade.Phong")
+            # set with eqx.tree_at, it skipped its converter: refused as that would
+            _checks.float_leaf(value, name, "volshade.Phong")
             if jnp.ndim(value) != 0:
                 raise ValueError(f"volshade.Phong: `{name}` must be a scalar to shade, got "
                                  f"shape {jnp.shape(getattr(self, name))}; for a batch of "

@@ -291,11 +291,15 @@ class IntervalFeature(eqx.Module):
 
     def opacity(self, volume: Array, base: TransferFunction, *,
                 step: float | Array | None = None) -> Array:
-        """``base.opacity(volume, step=step)`` inside ``[low, high]``, 0 outside."""
+        """``base.opacity(volume, step=step)`` inside ``[low, high]``, 0 outside; an interval
+        known to lie outside ``base``'s control points (it would select nothing) is
+        refused."""
+        where = "volshade.IntervalFeature.opacity"
         if not isinstance(base, TransferFunction):
-            raise TypeError(f"volshade.IntervalFeature.opacity: `base` must be a "
-                            f"volshade.TransferFunction, got {type(base).__name__}.")
-        volume = _checks.as_working_float(volume, "volume", "volshade.IntervalFeature.opacity")
+            raise TypeError(f"{where}: `base` must be a volshade.TransferFunction, got "
+                            f"{type(base).__name__}.")
+        _check_interval_meets(self, base, "the interval", where)
+        volume = _checks.as_working_float(volume, "volume", where)
         return self._select(volume, base.opacity(volume, step=step))
 
     def _select(self, volume: Array, base_opacity: Array) -> Array:
@@ -375,14 +379,14 @@ def _feature_opacities(volume, features, base, step, where: str) -> Array:
         if base is None:
             raise ValueError(f"{where}: features[{i}] is an interval; pass `base=` "
                              f"the transfer function it selects from.")
-        _check_interval_meets(feature, base, i, where)
+        _check_interval_meets(feature, base, f"features[{i}], the interval", where)
         if base_opacity is None:
             base_opacity = base.opacity(volume, step=step)
         out.append(feature._select(volume, base_opacity))
     return jnp.stack(out)
 
 
-def _check_interval_meets(feature: "IntervalFeature", base: TransferFunction, i: int,
+def _check_interval_meets(feature: "IntervalFeature", base: TransferFunction, what: str,
                           where: str) -> None:
     """Refuse, when known, an interval that lies outside ``base``'s control points: the
     volume's values lie within them (``base.opacity`` refuses others), so it would select
@@ -393,7 +397,7 @@ def _check_interval_meets(feature: "IntervalFeature", base: TransferFunction, i:
         return
     low, high, first, last = (float(v) for v in known)
     if high < first or low > last:
-        raise ValueError(f"{where}: features[{i}], the interval [{low:g}, {high:g}], lies "
+        raise ValueError(f"{where}: {what} [{low:g}, {high:g}] lies "
                          f"outside `base`'s control points [{first:g}, {last:g}], which "
                          f"every value of the volume lies within: it selects no voxel. "
                          f"Give it in the volume's values (e.g. normalised to [0, 1]).")
