@@ -662,6 +662,9 @@ def test_mistakes_a_new_user_made_are_named():
                                              r"`base`'s control points \[0, 1\]"):
             vs.feature_ao(VOL, features=[vs.IntervalFeature(*interval)], base=TF,
                           directions=4, radius=2.0)
+        with pytest.raises(ValueError, match=r"IntervalFeature.opacity: the interval .* lies "
+                                             r"outside `base`'s control points"):
+            vs.IntervalFeature(*interval).opacity(VOL, TF)
     # an effect's parameters, or a volume, where its option's name goes: a warning and
     # the whole array printed in the error
     with pytest.raises(ValueError, match=r"`shading` must name an option, one of 'none', "
