@@ -609,11 +609,11 @@ def _concrete(x) -> float | None:
 
 
 def _in_dtype(value: float | None, dtype) -> float | None:
-    """A concrete ``value`` rounded to ``dtype`` (``inf`` where it overflows), or ``None``."""
+    """A concrete ``value`` rounded to ``dtype``, or ``None`` (values beyond the dtype's
+    range were refused by :func:`volshade._checks.scalar`)."""
     if value is None:
         return None
-    with np.errstate(over="ignore"):
-        return float(np.asarray(value).astype(jnp.dtype(dtype)))
+    return float(np.asarray(value).astype(jnp.dtype(dtype)))
 
 
 def _divided(x, divisor, xp):
