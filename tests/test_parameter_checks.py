@@ -667,11 +667,11 @@ def test_mistakes_a_new_user_made_are_named():
             vs.IntervalFeature(*interval).opacity(VOL, TF)
     # an effect's parameters, or a volume, where its option's name goes: a warning and
     # the whole array printed in the error
-    with pytest.raises(ValueError, match=r"`shading` must name an option, one of 'none', "
+    with pytest.raises(TypeError, match=r"`shading` must name an option, one of 'none', "
                                          r"'phong', 'obscurance', got Phong; Phong "
                                          r"coefficients go in `phong=`"):
         vs.Scene(volume=VOL, transfer=TF, shading=vs.Phong())
-    with pytest.raises(ValueError, match=r"`ambient` must name an option.* got ndarray; an "
+    with pytest.raises(TypeError, match=r"`ambient` must name an option.* got ndarray; an "
                                          r"ambient volume of your own goes in `ambient_volume=`"):
         vs.Scene(volume=VOL, transfer=TF, ambient=np.ones(VOL.shape))
     # a transfer function, or its method, where its values go

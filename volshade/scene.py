@@ -142,14 +142,6 @@ def _unused_message(name: str, stage: str, option: str, users: tuple[str, ...]) 
             f"`{name}=None` too).")
 
 
-def _set_to_other_than(value: Any, default: float) -> bool:
-    """Whether a known leaf holds a value other than ``default`` (traced: taken as not)."""
-    try:
-        return bool(jnp.any(jnp.asarray(value) != default))
-    except jax.errors.ConcretizationTypeError:
-        return False
-
-
 class _Unread(NamedTuple):
     """A leaf of a scene's effect parameters that its other settings leave unread."""
 
@@ -157,6 +149,12 @@ class _Unread(NamedTuple):
     default: float
     reason: str
     message: str  # refusing another value than the default
+
+    def set(self) -> Any:
+        """Whether the leaf holds another value than its default (a ``bad`` for
+        :func:`volshade._checks.refuse`)."""
+        xp, value = _checks.for_check(self.leaf)
+        return xp.any(value != self.default)
 
 
 class Scene(eqx.Module):
@@ -360,9 +358,9 @@ class Scene(eqx.Module):
                             f"{type(self.focus).__name__}.")
         if self.focus is not None and self.composition != "importance":
             raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
-        for unread in self._unread_leaves().values():
-            if _set_to_other_than(unread.leaf, unread.default):
-                raise ValueError(f"{_WHERE}: {unread.message}")
+        _checks.refuse(None, [(unread.set(), unread.message)
+                              for unread in self._unread_leaves().values()], _WHERE,
+                       traced=False)
         if self.clip is not None:
             if not isinstance(self.clip, Clip):
                 raise TypeError(f"{_WHERE}: `clip` must be a volshade clip shape (e.g. "
@@ -484,9 +482,8 @@ def _unread_at_default(scene: Scene) -> Scene:
     built under ``jit``, reaches the render unchecked (the render would ignore it)."""
     for path, unread in scene._unread_leaves().items():
         stage, name = path.split(".")
-        xp, value = _checks.for_check(unread.leaf)
-        checked = _checks.refuse(unread.leaf, [(xp.any(value != unread.default),
-                                                unread.message)], "volshade.render")
+        checked = _checks.refuse(unread.leaf, [(unread.set(), unread.message)],
+                                 "volshade.render")
         scene = eqx.tree_at(lambda s, stage=stage, name=name: getattr(getattr(s, stage), name),
                             scene, checked)
     return scene
