@@ -608,14 +608,6 @@ def _concrete(x) -> float | None:
     return float(arr)
 
 
-def _in_dtype(value: float | None, dtype) -> float | None:
-    """A concrete ``value`` rounded to ``dtype``, or ``None`` (values beyond the dtype's
-    range were refused by :func:`volshade._checks.scalar`)."""
-    if value is None:
-        return None
-    return float(np.asarray(value).astype(jnp.dtype(dtype)))
-
-
 def _divided(x, divisor, xp):
     """``x / divisor`` for a scale ``divisor > 0`` that the caller's result does not
     depend on (held constant): on the host for NumPy arrays, else
@@ -719,7 +711,7 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     r_given, a_given = _concrete(radius), _concrete(offset)
     radius = _checks.scalar(radius, "radius", where, unit="voxels", dtype=dtype)
     offset = _checks.scalar(offset, "offset", where, unit="voxels", dtype=dtype)
-    r_value, a_value = _in_dtype(r_given, dtype), _in_dtype(a_given, dtype)
+    r_value, a_value = _checks.concrete(radius), _checks.concrete(offset)  # in `dtype`
     working = f"in {jnp.dtype(dtype).name}, the dtype of the march"
     if a_value is not None and not (np.isfinite(a_value) and a_value >= 0):
         raise ValueError(f"{where}: `offset` must be a finite number >= 0 (voxels) {working}, "
