@@ -49,7 +49,9 @@ class Importance(eqx.Module):
 
     Every field is a differentiable scalar array leaf, so a fit never recompiles.
     The defaults (all measure weights 0) give $I_s = 0$ everywhere, for which
-    importance-aware compositing equals standard compositing. Compositing depends
+    importance-aware compositing equals standard compositing up to rounding (about
+    1e-15 in float64, 1e-6 in float32: eq. 8's terms are not formed as standard
+    compositing forms them, so the rounding differs). Compositing depends
     on importance differences only, and gaps of any size are handled stably; but the
     products $W_{global} W_{measure} \cdot measure$ are formed in the render's dtype,
     so in float32 weights whose product passes about $10^{38}$ (e.g. both $10^{30}$)
@@ -338,7 +340,7 @@ def sample_importance(
     is $e^{-k\, sil\, w}$ with $w = \mathrm{clip}(W_{global}, 0, 1)$ (sec. IV-A4,
     $k = 4$), applied only where $W_{sil} \ne 0$: full darkening at weight 1 or
     more, none at 0, so the default :class:`Importance` and context rays with
-    zero global weight render exactly as standard DVR, and smooth in between, so
+    zero global weight render as standard DVR (up to rounding), and smooth in between, so
     that the darkening fades with the focus weights as the importance does
     (sec. IV-D: "a smooth transition ... by varying the per-ray-global weight").
 

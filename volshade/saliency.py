@@ -456,7 +456,10 @@ def modulate_opacity(
        \qquad b = \begin{cases} 2 & S \ge 1 - \text{boost\_top} \\ 1 & \text{else} \end{cases} $$
 
     with $m = 1$ when ``multiply`` (the opacity times the saliency, Figure 6) and
-    $m = 0$ otherwise (opacity preserved above the threshold, Figure 7 b).
+    $m = 0$ otherwise (opacity preserved above the threshold, Figure 7 b). The
+    paper uses the threshold 0.2 only with $m = 0$ (Figure 7); Figure 6 multiplies
+    without one (``threshold=0``). The defaults combine the two: multiplied, and cut
+    at 0.2.
     ``boost_top`` doubles the opacity of the most salient voxels, those whose
     scaled saliency is in the top ``boost_top`` fraction of the range [0, 1]
     (Figure 7 c); the doubled opacity is clipped to 1 (documented clip).
@@ -465,7 +468,7 @@ def modulate_opacity(
         opacity: ``(D, H, W)`` opacities in [0, 1].
         saliency: ``(D, H, W)`` saliency in [0, 1] (:func:`saliency`).
         threshold: saliency below which voxels become transparent, in [0, 1] (0.2 in
-            the paper); dynamic.
+            the paper's Figure 7; 0 for its Figure 6); dynamic.
         multiply: multiply the opacity by the saliency.
         boost_top: ``None`` (no boost) or a fraction in (0, 1].
 
