@@ -633,7 +633,8 @@ def test_projected_area_of_one_voxel(opacity, dtype):
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_viewpoint_saliency_of_one_voxel(opacity, sal, dtype):
     # nothing lies between the voxel and any viewer: V = 1; the contribution is its own
-    # opacity corrected to the step, alpha' = 1 - (1 - alpha)^|s|
+    # opacity corrected to the step, alpha' = 1 - (1 - alpha)^|s|, over its line's share
+    # of the image plane, |v_a| = 1 / |s|
     o, s = jnp.full((1, 1, 1), opacity, dtype), jnp.full((1, 1, 1), sal, dtype)
     tol = 1e-6 if dtype == jnp.float32 else 1e-13
     trans = viewpoint_saliency(s, o, VIEWS)
@@ -641,7 +642,7 @@ def test_viewpoint_saliency_of_one_voxel(opacity, sal, dtype):
     np.testing.assert_allclose(np.asarray(trans), np.full(len(VIEWS), sal), rtol=tol)
     own = 1 - (1 - opacity) ** STEP
     contrib = viewpoint_saliency(s, o, VIEWS, visibility="contribution")
-    np.testing.assert_allclose(np.asarray(contrib), sal * own, rtol=tol, atol=tol)
+    np.testing.assert_allclose(np.asarray(contrib), sal * own * MAJOR, rtol=tol, atol=tol)
     per_area = viewpoint_saliency(s, o, VIEWS, per_area=True)
     want = sal / MAJOR if opacity > 0 else np.zeros(len(VIEWS))  # unseen: 0, not 0/0
     np.testing.assert_allclose(np.asarray(per_area), want, rtol=tol)
@@ -655,11 +656,12 @@ def test_viewpoint_saliency_gradients_of_one_voxel():
 
     ones = jnp.ones((1, 1, 1), dtype)
     # at opacity 1: d alpha'/d alpha = |s| (1 - alpha)^(|s| - 1) is 1 on the four axis
-    # views (|s| = 1) and 0 on the others; d/dsaliency = sum of alpha' / area
+    # views (|s| = 1) and 0 on the others; d/dsaliency = sum of |v_a| alpha' / area, 1
+    # per view
     g = grad("contribution", True)
     g_o, g_s = g(ones, ones)
     np.testing.assert_allclose(float(g_o[0, 0, 0]), 4.0, rtol=1e-6)
-    np.testing.assert_allclose(float(g_s[0, 0, 0]), np.sum(1 / MAJOR), rtol=1e-6)
+    np.testing.assert_allclose(float(g_s[0, 0, 0]), len(VIEWS), rtol=1e-6)
     # opacity 0: nothing seen, area 0, and a view that sees nothing scores 0 (not 0/0),
     # with slope 0 in both (the quotient is cut where the area is 0, a step in opacity)
     g_o, g_s = g(0 * ones, ones)

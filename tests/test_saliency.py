@@ -49,7 +49,8 @@ def reference_viewpoint_saliency(sal, alpha, views, visibility="transmittance"):
                 trans *= (1 - alpha[tuple(q)]) ** step
             own = 1 - (1 - alpha[p]) ** step
             total += sal[p] * (trans if visibility == "transmittance" else trans * own)
-        out.append(total)
+        # a composite sums per pixel: each line stands for |v_a| / |v| of the image plane
+        out.append(total if visibility == "transmittance" else total / step)
     return np.array(out)
 
 
@@ -157,6 +158,25 @@ def test_saliency_float32_agrees_with_float64():
 
 
 # ------------------------------------------------------------------ viewpoint saliency
+
+
+def test_contribution_is_an_image_integral_not_a_count_of_lines():
+    # a salient opaque ball: every line that meets it composites a saliency of 1, so the
+    # contribution summed over the image plane is the projected area, from every side
+    # alike (pi r^2, up to the voxels' staircase: 5% at r = 10); the transmittance, a
+    # sum over voxels, counts one step of the line per pixel: sqrt(3) voxels on a
+    # diagonal view (whole numbers of lines and areas: exact in float32)
+    n, radius = 32, 10.0
+    r = np.sqrt(np.sum((np.indices((n, n, n)) - (n - 1) / 2) ** 2, axis=0))
+    alpha = jnp.asarray(r < radius, jnp.float32)
+    views = np.concatenate([[[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [1.0, 1.0, 1.0]],
+                            icosphere(1)])
+    contrib = np.asarray(viewpoint_saliency(alpha, alpha, views, visibility="contribution"))
+    np.testing.assert_allclose(contrib, np.asarray(projected_area(alpha, views)),
+                               rtol=1e-12)
+    np.testing.assert_allclose(contrib, np.pi * radius**2, rtol=0.06)
+    trans = np.asarray(viewpoint_saliency(alpha, alpha, views[:3]))
+    np.testing.assert_allclose(trans[1:] / trans[0], [np.sqrt(2), np.sqrt(3)], rtol=0.03)
 
 
 @pytest.mark.parametrize("visibility", ["transmittance", "contribution"])

@@ -236,7 +236,11 @@ def _viewpoint_sums(saliency: Array, opacity: Array, *, dirs: tuple, visibility:
     vis_fn = _VISIBILITY[visibility]
 
     def reduce(alpha, cols_saliency, cosine):
-        return _visible_sum(alpha, cols_saliency, vis_fn, sequential)
+        total = _visible_sum(alpha, cols_saliency, vis_fn, sequential)
+        # a composite is a value per pixel, and a line stands for |v_a| voxel^2 of the
+        # image plane (1 to 1/sqrt(3)): unweighted, a sum over lines would count an
+        # oblique view's pixels up to sqrt(3) times over
+        return cosine * total if visibility == "contribution" else total
 
     # the caller gives both in their _work_dtype
     return _per_view(opacity, np.asarray(dirs), reduce, saliency)
@@ -262,21 +266,29 @@ def viewpoint_saliency(
 ) -> Float[Array, " V"]:
     r"""Viewpoint saliency $S(v) = \sum_p S(p) V(p)$ (eq. 6, section 5.2) for each viewpoint.
 
-    $V(p)$ is the transmittance from voxel $p$ to the viewer (module docstring):
-    ``visibility="transmittance"`` uses it as is (the paper's visibility),
-    ``"contribution"`` uses $\alpha'(p) V(p)$, the weight of $p$ in a
-    front-to-back composite (empty voxels then count for nothing). With
-    ``per_area=True`` the sum is divided by :func:`projected_area` (the most
-    salient view per unit of projected area, Figure 6 f-g); a viewpoint that sees
-    an empty volume gets 0.
+    $V(p)$ is the transmittance from voxel $p$ to the viewer (module docstring).
+    ``visibility="transmittance"`` uses it as is, the paper's visibility: a sum over
+    voxels, a volume integral. Where the opacity per step is high its visible layer
+    is one step of the digital line thick, 1 voxel on axis-aligned views and up to
+    $\sqrt 3$ on diagonal ones, so an opaque surface scores up to $\sqrt 3$ times
+    more seen obliquely (an opaque ball: 1.41 along ``(1, 1, 0)`` and 1.72 along
+    ``(1, 1, 1)``, against 1.01 and 1.02 at opacity 0.05). ``"contribution"`` has
+    no such bias: it is the saliency composited front to back as an image, summed
+    over the image plane (voxel$^2$), $\sum_{\text{lines}} |v_a| \sum_p \alpha'(p)
+    V(p) S(p)$, each line standing for $|v_a|$ voxel$^2$ of the image (the opaque
+    ball's scores from the 42 views of ``icosphere(1)`` differ by 2.6%); empty
+    voxels count for nothing.
+    Use it for surfaces. With ``per_area=True`` the sum is divided by
+    :func:`projected_area` (the most salient view per unit of projected area,
+    Figure 6 f-g); a viewpoint that sees an empty volume gets 0.
 
     On measured data, restrict the saliency to what should be looked at (e.g.
     ``saliency * (opacity > 0)``, and 0 near faces where the scan is cut). The
     obscurance varies in the air around an object and jumps where the data ends, and
     both carry saliency: on Colin27 (3 mm voxels, ``head`` preset, 42 directions,
     ``d_max`` 16) 37% of it lies in voxels without opacity, and the most salient of 42
-    views looks down at the crown (``"transmittance"``) or up at the cut neck
-    (``"contribution"``).
+    views looks down at the crown (``"transmittance"``) or in from the left and 30
+    degrees below, at the cut neck (``"contribution"``).
 
     Args:
         saliency: ``(D, H, W)`` voxel saliency (:func:`saliency`).
