@@ -4,10 +4,13 @@ A clip is a solid placed in the volume (voxel index coordinates, ``(d, h, w)``
 order) by its ``center`` and ``rotation`` (a rotation matrix whose columns are
 the shape's local axes); the voxels whose centres lie inside it are removed
 (opacity 0). This is the subtraction of the clipping mesh from the volume of
-Titov et al. (section 3.2). Every shape has a signed distance $\phi(x)$ (voxels,
-negative inside, 1-Lipschitz; exact, but inside a self-intersecting torus, ``major <
-minor``, where $|\phi|$ may be less than the distance to the surface), from which both
-masks follow:
+Titov et al. (section 3.2), but for the voxels on the surface: their eq. 1 keeps a
+sample on the clipping surface visible; here a voxel centre on it, $\phi = 0$, is
+removed (a sphere of radius 1 about a voxel centre removes 7 voxels, not 1; a
+half-space through voxel centres, the layer on its plane). Every shape has a signed
+distance $\phi(x)$ (voxels, negative inside, 1-Lipschitz; exact, but inside a
+self-intersecting torus, ``major < minor``, where $|\phi|$ may be less than the
+distance to the surface), from which both masks follow:
 
 * **clipped**: $\phi(x) \le 0$ at the voxel centre;
 * **affected** (the dilation shape, sections 3.3-3.4): the LAO of voxel $x$ reads

@@ -28,7 +28,8 @@ unchanged, whatever $\Delta s$. With ``opacity_correction=True`` each sample
 is corrected to the step, $\alpha' = 1 - (1 - \alpha)^{\Delta s / \Delta s_0}$
 with $\Delta s_0 = 1$ voxel, so ``alpha`` is read as the opacity of a one-voxel
 step and changing ``radius``, ``offset`` or ``samples`` changes the physics
-consistently (then AO $\to 1$ as $R \to a$).
+consistently (then AO $\to 1$ as $R \to a$, wherever the samples read opacities
+below 1: an opacity of exactly 1 stays opaque at any step).
 
 **How it is computed.** For a fixed direction and sample, the offset $s_i l$ is
 the same for every voxel, so the sample volume is the opacity volume shifted by
