@@ -354,9 +354,12 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
 
     Args:
         path: the ``.nii`` or ``.nii.gz`` file.
-        normalize: map ``min..max`` to ``[0, 1]`` (default ``True``).
+        normalize: map ``min..max`` of the full-resolution image to ``[0, 1]``
+            (default ``True``).
         downsample: integer factor ``f >= 1``: average ``f^3`` blocks of voxels
-            (``skimage.transform.downscale_local_mean``, applied after normalising;
+            (``skimage.transform.downscale_local_mean``, applied after normalising,
+            so a tissue keeps its value at every factor and a transfer function
+            fits them all, while the block means' range can end below 1;
             a partial block at the far faces averages the voxels it holds), giving
             shape ``ceil(n / f)`` per axis and spacing multiplied by ``f``.
 
@@ -523,7 +526,9 @@ def load(name: str, *, downsample: int = 1,
             ``"mni152_wm"``).
         downsample: integer factor: block-mean over ``f^3`` voxels (for smaller heads
             in demos and tests); the spacing grows by ``f``.
-        normalize: map the intensities ``min..max`` to ``[0, 1]`` (default ``True``).
+        normalize: map the intensities ``min..max`` to ``[0, 1]`` (default ``True``),
+            before the block mean (:func:`load_nifti`): downsampled, the range can end
+            below 1 (Colin27 at ``downsample=3``: 0.94).
 
     Returns:
         ``(volume, spacing)``: ``(D, H, W)`` ``float32`` ``jax.Array`` in axis order

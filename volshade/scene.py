@@ -545,7 +545,10 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
 
     Returns:
         ``(H, W, 4)`` RGB (background blended in) and accumulated opacity; for a
-        sequence of cameras, a list of those images, one per camera, in order.
+        sequence of cameras, a list of those images, one per camera, in order. The
+        RGB is not clipped: Phong's terms can add up past 1 (the defaults, 0.35 +
+        0.65 + 0.25, where a highlight falls on a bright colour). :func:`save_png`
+        clips; for ``matplotlib.pyplot.imshow`` use ``jnp.clip(image[..., :3], 0, 1)``.
 
     Raises:
         TypeError: ``scene`` is not a :class:`Scene`; ``camera`` is not a camera or a
