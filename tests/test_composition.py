@@ -582,6 +582,25 @@ def test_float32_gradients_where_an_important_sample_takes_over():
             np.testing.assert_allclose(g, w, rtol=2e-3, atol=2e-3)
 
 
+@pytest.mark.parametrize("faint", [1e-30, 1e-20, 1e-18])
+def test_float32_and_float64_take_the_same_faint_samples(faint):
+    # behind a red sample, a green one 100 above it in importance takes the colour however
+    # faint it is (m = e^-100): both dtypes count opacities below float32's sqrt(tiny),
+    # 1.1e-19, as empty (float64 took 1e-30 and 1e-20, float32 could not), and above it
+    # both hand the ray to the green sample
+    a = np.asarray([0.9, faint])
+    c = np.asarray([[1.0, 0, 0], [0, 1.0, 0]]) * a[:, None]
+    imp = np.asarray([0.0, 100.0])
+    out = {}
+    for dtype in (jnp.float32, jnp.float64):
+        args = [jnp.asarray(x, dtype) for x in (c, a, imp)]
+        out[dtype] = np.asarray(composite(*args[:2], importance=args[2]), np.float64)
+    np.testing.assert_allclose(out[jnp.float32], out[jnp.float64], rtol=1e-6, atol=1e-7)
+    green = faint > 1.1e-19
+    np.testing.assert_allclose(out[jnp.float64], [0, 0.9, 0, 0.9] if green else
+                               [0.9, 0, 0, 0.9], atol=1e-7)
+
+
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
 def test_half_precision_is_composited_in_float32(dtype):
     # float16 has 2^-14 as its smallest normal number: composited in float16, an opacity of

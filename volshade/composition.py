@@ -56,7 +56,7 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
 from . import _checks
-from ._numerics import tiny, value_and_tangent
+from ._numerics import value_and_tangent
 from ._types import Array, ArrayLike, Float
 
 
@@ -230,7 +230,7 @@ class _StepTerms(NamedTuple):
 
     alpha_acc: Array    # alpha_i = 1 - T_i
     nonempty: Array     # alpha_i > 0
-    visible: Array      # alpha' above sqrt(tiny): the step's divisions are taken
+    visible: Array      # alpha' above _visibility_floor: the step's divisions are taken
     blend: Array        # nonempty and visible: the colour weights of eq. 8a-8d apply
     direct: Array       # p as m alpha_{i+1} / alpha' (m < 1/2), not 1 - alpha_s (1 - m) / alpha'
     ahead: Array        # K_i > I_s: the accumulated importance dominates
@@ -251,6 +251,15 @@ class _StepTerms(NamedTuple):
     ok: Array           # the log of eq. 8e is taken
     log_ratio: Array    # K_{i+1} - M
     transmittance: Array
+
+
+def _visibility_floor(x: Array) -> Array:
+    """The $\\alpha'$ at or below which a step of :func:`importance_step` is empty: float32's
+    $\\sqrt{\\text{tiny}}$ in float32 and wider dtypes, the dtype's own in float16 (whose
+    range is narrower)."""
+    dtype = jnp.result_type(x)
+    floor = max(float(jnp.finfo(dtype).tiny), float(jnp.finfo(jnp.float32).tiny)) ** 0.5
+    return jnp.asarray(floor, dtype)
 
 
 def _step_terms(t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array) -> _StepTerms:
@@ -275,11 +284,14 @@ def _step_terms(t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array) -> _St
     alpha_p = a + alpha_s * one_minus_a                # eq. 8b; alpha_s on an empty ray
     t_new = t_acc * (1 - alpha_s)                      # eq. 8c
     alpha_new = 1 - t_new
-    # alpha' below sqrt(tiny) (1e-19 in float32) needs alpha_s below 2 sqrt(tiny), which
-    # cannot change T: such a step changes nothing, and 1 / alpha'^2 in the gradient stays
-    # finite. alpha_s = 0 behind a nonempty ray is visible (alpha' = a): its gradient is
+    # alpha' below float32's sqrt(tiny), 1.1e-19, counts as nothing, in every dtype: it
+    # needs alpha_s below 2.2e-19, which cannot change T, and 1 / alpha'^2 in the gradient
+    # stays finite. It could change C: eq. 8 hands the colour to a sample of higher
+    # importance however faint (m -> 0 with alpha' -> alpha_s gives p -> 0), so a floor of
+    # the dtype's own (1.5e-154 in float64) would let float64 take a colour that float32
+    # cannot. alpha_s = 0 behind a nonempty ray is visible (alpha' = a): its gradient is
     # the one-sided limit, not cut to 0.
-    visible = alpha_p > jnp.sqrt(tiny(alpha_p))
+    visible = alpha_p > _visibility_floor(alpha_p)
     blend = nonempty & visible
     take_sample = (visible & new_peak) | ~nonempty
     inv_p = 1 / jnp.where(visible, alpha_p, one)
@@ -361,8 +373,11 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     whose exponents are $\le 0$ and whose argument lies in
     $[e^{-|K_i - I_s|}, 1]$: no exp overflows for any importance gap and no
     division by zero happens (the divisions are taken where $\alpha'$ exceeds
-    $\sqrt{\text{tiny}}$ of the dtype, $10^{-19}$ in float32, which a step with a
-    smaller $\alpha'$ cannot change; the only zero $\alpha_{i+1}$ is on an empty
+    $\sqrt{\text{tiny}}$ of float32, $1.1 \cdot 10^{-19}$, also in float64: a step
+    with a smaller $\alpha'$ is taken as empty, in both alike. It cannot change
+    $T$, but in exact arithmetic it could change $C$: behind samples of much lower
+    importance, $m \approx 0$, eq. 8 hands the colour to a new sample however faint.
+    The only zero $\alpha_{i+1}$ is on an empty
     ray meeting a sample too faint to change $T = 1$, where $K$ is kept). Every
     guarded operation uses the double-``where`` idiom, so gradients are finite at
     $\alpha_s = 0$ and 1 and for importance gaps of $10^4$; at $\alpha_s = 0$ and
