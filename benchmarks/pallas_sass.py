@@ -21,8 +21,8 @@ correction:
 
 A static measure, not a timing: it shows where instructions go. For scale (from the
 published peaks, not measured): an H100 SXM issues 4 x 32 thread instructions per
-multiprocessor and clock (132 of them at 1.98 GHz), so 27 instructions a sample
-bound the forward near 1.2 T samples/s, and its L1 delivers 128 bytes per
+multiprocessor and clock (132 of them at 1.98 GHz), so the forward's 30
+instructions a sample bound it near 1.1 T samples/s, and its L1 delivers 128 bytes per
 multiprocessor and clock while a sample reads 32 (eight corners of four bytes),
 about 1.05 T/s: both limits sit near issue 3's goal of 1 T/s. Needs ``pip install
 triton`` and a jaxlib that embeds Triton IR in its custom call (0.10.2 here; later

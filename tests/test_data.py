@@ -408,5 +408,5 @@ def test_load_points_a_file_path_to_load_nifti(tmp_path, xyz):
         with pytest.raises(ValueError, match=r"names a file, not a dataset; read a NIfTI "
                                              r"file with volshade.data.load_nifti\(path\)"):
             data.load(given)
-    with pytest.raises(ValueError, match="unknown dataset 'colin28'"):
+    with pytest.raises(ValueError, match="unknown dataset name 'colin28'"):
         data.load("colin28")

@@ -353,8 +353,12 @@ def _bad_call(**change):
 
 @pytest.mark.parametrize("change, error, match", [
     (dict(params=["lao.raduis"]), ValueError, "has no field 'raduis'.*'radius'"),
-    (dict(params=["step"]), ValueError, "'step' is static"),
-    (dict(params=["lao.samples"]), ValueError, "'lao.samples' is static"),
+    (dict(params=["step"]), ValueError, "'step': `step` is static.*fit an array parameter"),
+    (dict(params=["lao.samples"]), ValueError, "'lao.samples': `samples` is static"),
+    # a stage option in place of its effect's parameters: the same path under them
+    (dict(params=["ambient.radius"]), ValueError, "`ambient` is static .* the scene's "
+                                                   "fields lao, feature_ao, obscurance: "
+                                                   "e.g. 'lao.radius'"),
     (dict(params=["focus.radius"]), ValueError, "cannot take 'radius' of None.*give it one"),
     (dict(params=[("lao", "radius")]), TypeError, "paths as strings"),
     (dict(params={"lao.radius": ("a", 1.0)}), TypeError, "numbers or None"),

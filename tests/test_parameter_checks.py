@@ -229,7 +229,7 @@ def test_nested_lists_become_arrays():
     (lambda: vs.obscurance(DENSITY, directions=[["1", "0", "0"]], d_max=4.0), TypeError,
      r"obscurance: `directions` must be an \(L, 3\) array of real numbers, got dtype <U1"),
     (lambda: vs.viewpoint_saliency(DENSITY, DENSITY, [[True, False, False]]), TypeError,
-     "viewpoint_saliency: `viewpoints` must be an .* real numbers, got dtype bool"),
+     "viewpoint_saliency: `viewpoints` must be a .* real numbers, got dtype bool"),
     (lambda: vs.Scene(volume=VOL, transfer=TF, background=None), TypeError,
      "volshade.Scene: `background` must be a real number"),
     (lambda: vs.LocalAmbientOcclusion("3"), TypeError, "`radius` must be a real number"),
@@ -273,7 +273,7 @@ def test_nested_lists_become_arrays():
     (lambda: vs.Scene(volume=VOL, transfer=TF, background=(0.0, -0.5, 0.0)), ValueError,
      r"volshade.Scene: `background` must lie in \[0, 1\] \(an RGB colour\)"),
     (lambda: vs.projected_area(DENSITY, None), TypeError,
-     r"projected_area: `viewpoints` must be an \(L, 3\) array of directions, got None"),
+     r"projected_area: `viewpoints` must be a \(V, 3\) array of directions, got None"),
     (lambda: vs.render(vs.Scene(volume=VOL, transfer=TF, shading="phong",
                                 phong=vs.Phong(ambient=[0.2, 0.4])), CAM), ValueError,
      "Phong: `ambient` must be a scalar to shade, got shape \\(2,\\); .* jax.vmap"),
@@ -533,24 +533,24 @@ def test_obscurance_shading_input_errors():
 
 
 def test_saliency_errors_name_saliency_and_the_argument():
-    with pytest.raises(TypeError, match="saliency.saliency: `spacing` is static"):
+    with pytest.raises(TypeError, match="volshade.saliency: `spacing` is static"):
         jax.jit(lambda s: vs.saliency(DENSITY, spacing=s))(jnp.ones(3))
-    with pytest.raises(ValueError, match="saliency.saliency: `size` .* pass the Python int 5"):
+    with pytest.raises(ValueError, match="volshade.saliency: `size` .* pass the Python int 5"):
         vs.saliency(DENSITY, size=jnp.int32(5))
     with pytest.raises(ValueError, match="got Array\\(3.7"):
         vs.saliency(DENSITY, size=jnp.asarray(3.7))
-    with pytest.raises(ValueError, match="saliency.saliency: `spacing`"):
+    with pytest.raises(ValueError, match="volshade.saliency: `spacing`"):
         vs.saliency(DENSITY, spacing=(1.0, 2.0))
-    with pytest.raises(ValueError, match="saliency.saliency: `obscurance` must not be empty"):
+    with pytest.raises(ValueError, match="volshade.saliency: `obscurance` must not be empty"):
         vs.saliency(jnp.zeros((0, 4, 4)))
     with pytest.raises(ValueError, match="most_salient_view: `saliency` and `opacity`"):
         vs.most_salient_view(DENSITY, DENSITY[:, :, :4], icosphere(0))
     # named after the function called, not the helper that checks
-    with pytest.raises(ValueError, match="saliency.modulate_opacity: `threshold`"):
+    with pytest.raises(ValueError, match="volshade.modulate_opacity: `threshold`"):
         vs.modulate_opacity(DENSITY, DENSITY, threshold=jnp.array([0.1, 0.2]))
-    with pytest.raises(ValueError, match="saliency.modulate_opacity: `boost_top`"):
+    with pytest.raises(ValueError, match="volshade.modulate_opacity: `boost_top`"):
         vs.modulate_opacity(DENSITY, DENSITY, boost_top=2)
-    with pytest.raises(TypeError, match="saliency.modulate_opacity: `multiply` must be True or"):
+    with pytest.raises(TypeError, match="volshade.modulate_opacity: `multiply` must be True or"):
         vs.modulate_opacity(DENSITY, DENSITY, multiply="no")
     with pytest.raises(ValueError, match="saliency.opacity_factor: `threshold`"):
         opacity_factor(DENSITY, threshold=jnp.array([0.1, 0.2]))
@@ -683,3 +683,7 @@ def test_mistakes_a_new_user_made_are_named():
     # 0-255 colours composited to values up to 255
     with pytest.raises(TypeError, match=r"composite: `colors` has the integer dtype uint8"):
         vs.composite(np.full((2, 3, 3), 200, np.uint8), np.full((2, 3), 0.5))
+    # a nested list is an array of numbers (the integer check failed on it), a string not
+    np.testing.assert_array_equal(vs.composite([[0.5, 0.0, 0.0]], [0.5]), [0.5, 0, 0, 0.5])
+    with pytest.raises(TypeError, match=r"composite: `colors` must be an array of numbers"):
+        vs.composite("red", [0.5])

@@ -275,7 +275,7 @@ def test_regression_gradient_with_extreme_spacing(spacing):
                                                             unit.ndim else 1.0, size=size),
                                    rtol=1e-12, atol=1e-15)
     # and its checks name the function called
-    with pytest.raises(ValueError, match="volshade.gradient.regression_gradient: `size`"):
+    with pytest.raises(ValueError, match="volshade.regression_gradient: `size`"):
         regression_gradient(vol, spacing=spacing, size=4)
 
 

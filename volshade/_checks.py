@@ -408,7 +408,9 @@ def option(value: Any, table: Mapping[str, Any], name: str, where: str, *,
     ``hint`` (where what it is goes instead), not printed whole."""
     valid = ", ".join(repr(k) for k in table)
     if not isinstance(value, str):
-        raise TypeError(f"{where}: `{name}` must name an option, one of {valid}, got "
+        # an argument by its name; a description ("dataset") as words
+        label = f"`{name}`" if name.isidentifier() else f"the {name}"
+        raise TypeError(f"{where}: {label} must name an option, one of {valid}, got "
                          f"{type(value).__name__}{'; ' + hint if hint else ''}.")
     if value not in table:
         raise ValueError(f"{where}: unknown {name} {value!r}; valid values are {valid}.")

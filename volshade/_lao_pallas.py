@@ -19,16 +19,16 @@ within reach is not marched, by the XLA path's criterion, so no value changes.
 Reverse mode keeps the recompute-instead-of-store scheme of the XLA VJP, one
 direction at a time, in three kernels:
 
-1. ``_chunk_starts``: march forward, store the transmittance $T$ at the start of
+1. ``_chunk_starts_kernel``: march forward, store the transmittance $T$ at the start of
    every chunk of about $\sqrt{M}$ samples ($\sqrt M$ volumes; ``Launch.chunk``
    sets shorter chunks), and $occ_l$ (for the weight's cotangent).
-2. ``_chunk_cotangents`` (chunks in reverse): reload the chunk's samples and
+2. ``_chunk_cotangents_kernel`` (chunks in reverse): reload the chunk's samples and
    their slopes along the ray, rebuild $T_i$ from the stored start, sweep back
    with the suffix sums $S_i$ and write $g_i = \bar o\, \hat w_l\, v_i T_i S_i$
    (through the opacity correction) for each sample of the chunk; sum the radius
    and offset terms $g_i\, \partial\alpha_i/\partial s\, \partial s_i/
    \partial(R, a)$ over the tile (one partial sum per program).
-3. ``_chunk_adjoint``: the adjoint of a shifted read is the opposite shift, so
+3. ``_chunk_adjoint_kernel``: the adjoint of a shifted read is the opposite shift, so
    $\bar\alpha(z) \mathrel{+}= \sum_i \sum_c w_c(i)\, g_i(z - n_i - c)$ is a
    gather-free stencil too. The $g_i$ live in a buffer with a zero halo as wide
    as the padding, so no read leaves it (the Triton lowering would allow masked

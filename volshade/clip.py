@@ -436,7 +436,7 @@ def clip_opacity(alpha: Float[Array, "D H W"], clip: Clip) -> Float[Array, "D H 
 
     Raises:
         ValueError: ``alpha`` not 3-D or not finite, a bad clip leaf.
-        TypeError: ``clip`` not a clip shape.
+        TypeError: ``clip`` not a clip shape; ``alpha`` not numbers.
     """
     where = "volshade.clip_opacity"
     alpha = _checks.volume(alpha, "alpha", where)

@@ -787,10 +787,14 @@ def composite(
     where = "volshade.composite"
     unroll = (1 if jax.default_backend() == "cpu" else 8) if unroll is None else (
         _checks.positive_int(unroll, "unroll", where))
-    if jnp.issubdtype(jnp.result_type(colors), jnp.integer):
+    try:
+        given = jnp.asarray(colors).dtype  # (a nested list too)
+    except (TypeError, ValueError):
+        given = None  # not numbers: as_float_array names it
+    if given is not None and jnp.issubdtype(given, jnp.integer):
         # 0-255 colours would composite to values up to 255 (as `save_png` and `vs.fit`
         # refuse integer images)
-        raise TypeError(f"{where}: `colors` has the integer dtype {jnp.result_type(colors)}; "
+        raise TypeError(f"{where}: `colors` has the integer dtype {given}; "
                         f"opacity-weighted colours are floats: divide 0-255 colours by 255 "
                         f"and multiply them by the opacities.")
     colors = _checks.as_float_array(colors, "colors", where)

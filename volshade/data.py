@@ -502,7 +502,7 @@ def data_path(name: str) -> pathlib.Path:
         'colin27_ch2_t1_head.nii.gz'
     """
     where = "volshade.data.data_path"
-    filename = _checks.option(name, _FILES, "dataset", where)
+    filename = _checks.option(name, _FILES, "dataset name", where)
     candidates = [folder / filename for folder in _search_dirs()]
     if name in _FALLBACKS:
         candidates.append(_FALLBACKS[name]())
@@ -556,7 +556,7 @@ def load(name: str, *, downsample: int = 1,
         raise ValueError(f"{where}: {os.fspath(name)!r} names a file, not a dataset; "
                          f"read a NIfTI file with volshade.data.load_nifti(path), or name "
                          f"one of {', '.join(map(repr, _FILES))}.")
-    _checks.option(name, _FILES, "dataset", where)
+    _checks.option(name, _FILES, "dataset name", where)
     _checks.positive_int(downsample, "downsample", where)
     _checks.flag(normalize, "normalize", where)
     return load_nifti(data_path(name), normalize=normalize, downsample=downsample)

@@ -1,7 +1,9 @@
 """Direction sets on the unit sphere, for ambient occlusion and obscurance rays.
 
 All functions return a ``(L, 3)`` array of unit vectors in volume axis order
-``(d, h, w)``, in JAX's default float dtype. They are static configuration:
+``(d, h, w)``: a JAX array in JAX's default float dtype, but for
+:func:`icosphere_points`, a read-only float64 NumPy array (concrete inside ``jit``).
+They are static configuration:
 the number of directions sets array shapes, so choose the set outside ``jit``.
 """
 
@@ -14,9 +16,20 @@ import numpy as np
 from . import _checks
 from ._types import Array, Float
 
+__all__ = ["fibonacci", "random_polar", "icosphere", "icosphere_points"]
+
 
 def fibonacci(n: int) -> Float[Array, "n 3"]:
     """``n`` nearly uniform directions on the Fibonacci (golden-angle) spiral.
+
+    Args:
+        n: number of directions, ``>= 1``.
+
+    Returns:
+        ``(n, 3)`` unit vectors, spiralling from near $+d$ to near $-d$.
+
+    Raises:
+        ValueError / TypeError: ``n`` not an int ``>= 1``.
 
     Example:
         >>> fibonacci(16).shape
@@ -39,8 +52,15 @@ def random_polar(n: int, *, key: jax.Array) -> Float[Array, "n 3"]:
     (Ancel et al. 2010, section 3).
 
     Args:
-        n: number of directions.
+        n: number of directions, ``>= 1``.
         key: a ``jax.random`` key; the same key gives the same set.
+
+    Returns:
+        ``(n, 3)`` unit vectors.
+
+    Raises:
+        ValueError / TypeError: ``n`` not an int ``>= 1``.
+        TypeError: ``key`` not a ``jax.random`` key.
     """
     where = "volshade.directions.random_polar"
     n = _checks.positive_int(n, "n", where)
@@ -102,11 +122,21 @@ def _subdivided_icosahedron(level: int) -> np.ndarray:
 
 
 def icosphere(level: int) -> Float[Array, "n 3"]:
-    """Vertices of a subdivided icosahedron: 12, 42, 162, 642 directions for level 0-3.
+    """Vertices of a subdivided icosahedron: 12, 42, 162, 642, 2562 directions for
+    levels 0-4.
 
     Each level splits every triangle into four and projects the new vertices
-    onto the sphere; the count is ``10 * 4**level + 2``. These are the direction
-    sets of the obscurance paper (Ruiz et al. 2008, section 3.1).
+    onto the sphere; the count is ``10 * 4**level + 2``. Levels 0-2 are the
+    direction sets of the obscurance paper (Ruiz et al. 2008, section 3.1).
+
+    Args:
+        level: subdivisions, 0 to 4.
+
+    Returns:
+        ``(10 * 4**level + 2, 3)`` unit vectors.
+
+    Raises:
+        ValueError / TypeError: ``level`` not an int from 0 to 4.
 
     Example:
         >>> icosphere(1).shape

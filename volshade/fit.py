@@ -93,6 +93,21 @@ def _is_index(part: str) -> bool:
     return part.isascii() and part.isdigit()
 
 
+def _static_hint(node: Any, part: str, path: str) -> str:
+    """What to fit in place of a static field: for a scene's stage option (``ambient``,
+    ...), the same path under the parameters of the effect it names."""
+    effects = ([name for name, (_, stage, _, _) in _PARAMETERS.items() if stage == part]
+               if isinstance(node, Scene) else [])
+    if not effects:
+        return "fit an array parameter"
+    chosen = getattr(node, part)
+    effect = chosen if chosen in effects else effects[0]
+    rest = path.split(".")[1:]  # (a scene is the root of every path)
+    example = ".".join([effect, *rest]) if rest else f"{effect}.<field>"
+    return (f"the parameters of the `{part}` effects are the scene's fields "
+            f"{', '.join(effects)}: e.g. {example!r}")
+
+
 def _child(node: Any, part: str, path: str) -> Any:
     """One step of a path: a Module field or a sequence index, refused with the valid
     names when it does not exist and when it is static (it cannot be fitted)."""
@@ -103,8 +118,9 @@ def _child(node: Any, part: str, path: str) -> Any:
             raise ValueError(f"{_WHERE}: {path!r}: {type(node).__name__} has no field "
                              f"{part!r}; its fields are {valid}.")
         if fields[part].metadata.get("static", False):
-            raise ValueError(f"{_WHERE}: {path!r} is static (it sets shapes or the traced "
-                             f"program) and cannot be fitted; fit an array parameter.")
+            raise ValueError(f"{_WHERE}: {path!r}: `{part}` is static (it sets shapes or the "
+                             f"traced program) and cannot be fitted; "
+                             f"{_static_hint(node, part, path)}.")
         # array leaves the image depends on with a zero derivative: a fit would stop at
         # once and report success with the value unchanged
         why = getattr(node, "_without_gradient", dict)().get(part)

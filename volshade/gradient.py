@@ -25,9 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks
-from ._numerics import safe_div, safe_norm, safe_normalize, scaled_down
+from . import _checks, _numerics
 from ._types import Array, ArrayLike, Float
+
+__all__ = ["regression_kernel", "regression_gradient", "gradient_magnitude"]
 
 _WEIGHTS = {
     "distance": lambda r: r,
@@ -105,6 +106,7 @@ def regression_gradient(
     Raises:
         ValueError: ``volume`` not 3-D or not finite, ``size`` not 3 or 5, a bad
             ``spacing`` or an unknown ``weighting``.
+        TypeError: ``volume`` not numbers (a string, a complex dtype).
 
     References:
         Neumann, Csébfalvi, König, Gröller: Gradient estimation in volume data using
@@ -116,7 +118,7 @@ def regression_gradient(
         >>> [round(float(c), 4) + 0.0 for c in g[4, 4, 4]]  # + 0.0: no -0.0 from rounding
         [1.0, 0.0, 0.0]
     """
-    where = "volshade.gradient.regression_gradient"
+    where = "volshade.regression_gradient"
     volume = _checks.volume(volume, "volume", where)
     _kernel(size, spacing, weighting, where)  # its checks, at once
     return _regression_gradient(volume, size, _checks.spacing(spacing, where), weighting)
@@ -217,9 +219,9 @@ def _magnitude(gradient: Array, *, scaled: bool) -> Array:
         # the field divided by its largest component first, so that neither the
         # magnitudes nor the quotient's derivative (m / M^2) leave the float range; the
         # scaled magnitude does not depend on that factor, which is held constant
-        gradient = scaled_down(gradient, _divisor(jnp.max(jnp.abs(gradient))))
+        gradient = _numerics.scaled_down(gradient, _divisor(jnp.max(jnp.abs(gradient))))
     result = _norm(gradient)
-    return safe_div(result, jnp.max(result)) if scaled else result
+    return _numerics.safe_div(result, jnp.max(result)) if scaled else result
 
 
 def _over_peak(g: Array) -> tuple[Array, Array]:
@@ -227,7 +229,7 @@ def _over_peak(g: Array) -> tuple[Array, Array]:
     vector): the squares of ``g``'s large components would overflow (float32: above
     1e19) and those of its small ones underflow."""
     peak = _divisor(jnp.max(jnp.abs(g), axis=-1, keepdims=True))
-    return scaled_down(g, peak), peak
+    return _numerics.scaled_down(g, peak), peak
 
 
 @jax.custom_jvp
@@ -237,14 +239,14 @@ def _norm(g: Array) -> Array:
     ``p |g / p|`` would scale a cotangent by ``p`` first, which overflows where the
     result does not."""
     scaled, peak = _over_peak(g)
-    return peak[..., 0] * safe_norm(scaled, axis=-1)
+    return peak[..., 0] * _numerics.safe_norm(scaled, axis=-1)
 
 
 @_norm.defjvp
 def _norm_jvp(primals, tangents):
     (g,), (dg,) = primals, tangents
     scaled, _ = _over_peak(g)
-    return _norm(g), jnp.sum(safe_normalize(scaled) * dg, axis=-1)
+    return _norm(g), jnp.sum(_numerics.safe_normalize(scaled) * dg, axis=-1)
 
 
 def _divisor(x: Array) -> Array:

@@ -244,7 +244,7 @@ def silhouetteness(
         ValueError: vectors not ``(..., 3)``; at run time, inputs that are not
             finite, $m_G$ outside [0, 1], $p \le 0$ or $s_1 \ge s_2$.
     """
-    where = "volshade.silhouetteness"
+    where = "volshade.importance.silhouetteness"
     n, v = (_feature(x, k, where) for x, k in ((normal, "normal"), (view, "view")))
     m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
     exponent, start, end = (_checks.numbers(x, k, where) for x, k in
@@ -292,7 +292,7 @@ def lighting_importance(
         ValueError: vectors not ``(..., 3)``; at run time, inputs that are not
             finite, $m_G$ outside [0, 1] or an exponent $\le 0$.
     """
-    where = "volshade.lighting_importance"
+    where = "volshade.importance.lighting_importance"
     n, v, l = (_feature(x, k, where) for x, k in  # noqa: E741
                ((normal, "normal"), (view, "view"), (light, "light")))
     m_g = _feature(gradient_magnitude, "gradient_magnitude", where)
@@ -473,7 +473,7 @@ def normalized_gradient_magnitude(gradient: Float[ArrayLike, "D H W 3"]) -> Floa
     Returns:
         ``(D, H, W)`` normalised magnitude; all zeros for a constant volume.
     """
-    where = "volshade.normalized_gradient_magnitude"
+    where = "volshade.importance.normalized_gradient_magnitude"
     gradient = _checks.as_float_array(gradient, "gradient", where)
     if gradient.ndim != 4 or gradient.shape[-1] != 3:
         raise ValueError(f"{where}: `gradient` must be (D, H, W, 3), got {gradient.shape}.")

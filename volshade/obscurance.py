@@ -144,8 +144,11 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
     digital lines read $s = l / |l_a|$ off them without rounding (a unit vector
     would not give it: (3, 4, 0) normalised and divided by 0.8 has
     $s_d = 0.7499999999999999$, and $o_d(2) = 1$, not 2)."""
+    rows = "V" if name == "viewpoints" else "L"  # (as the docstrings name them)
+    an = "a" if rows == "V" else "an"
     if directions is None:
-        raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, got None.")
+        raise TypeError(f"{where}: `{name}` must be {an} ({rows}, 3) array of directions, "
+                        f"got None.")
     try:
         given = np.asarray(directions)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError) as err:
@@ -157,28 +160,29 @@ def _direction_array(directions: object, name: str, where: str) -> np.ndarray:
             f"traced)."
         ) from err
     except (TypeError, ValueError) as err:
-        raise TypeError(f"{where}: `{name}` must be an (L, 3) array of directions, "
+        raise TypeError(f"{where}: `{name}` must be {an} ({rows}, 3) array of directions, "
                         f"got {type(directions).__name__}.") from err
     if np.iscomplexobj(given):  # converted, they would have lost their imaginary part
-        raise TypeError(f"{where}: `{name}` must be real (L, 3) directions, got complex "
+        raise TypeError(f"{where}: `{name}` must be real ({rows}, 3) directions, got complex "
                         f"numbers.")
     # converted to float64, a string would parse and a bool pass as 1 (also beside
     # numbers, which NumPy promotes to float)
     real = jnp.issubdtype(given.dtype, jnp.floating) or jnp.issubdtype(given.dtype, jnp.integer)
     if (given.size and not real) or _checks.holds_bool(directions):
         got = f"dtype {given.dtype}" if not real or given.dtype == np.bool_ else "a bool"
-        raise TypeError(f"{where}: `{name}` must be an (L, 3) array of real numbers, got "
+        raise TypeError(f"{where}: `{name}` must be {an} ({rows}, 3) array of real numbers, got "
                         f"{got}.")
     dirs = given.astype(np.float64)
     if dirs.ndim == 0:
         raise TypeError(
-            f"{where}: `{name}` must be an (L, 3) array of directions, got the number "
+            f"{where}: `{name}` must be {an} ({rows}, 3) array of directions, got the number "
             f"{directions!r}: the sweep needs the directions themselves; use e.g. "
             f"`volshade.directions.icosphere_points(1)` (42 directions; levels 0, 1, 2 give "
             f"the paper's 12, 42, 162).")
     if dirs.ndim != 2 or dirs.shape[1] != 3 or dirs.shape[0] == 0:
         raise ValueError(
-            f"{where}: `{name}` must have shape (L, 3) with L >= 1 (d, h, w) directions, got "
+            f"{where}: `{name}` must have shape ({rows}, 3) with {rows} >= 1 (d, h, w) "
+            f"directions, got "
             f"shape {dirs.shape}; use e.g. `volshade.directions.icosphere(1)` (42 directions)."
         )
     if not np.all(np.isfinite(dirs)):
@@ -472,7 +476,7 @@ def occluder_distances(
         >>> float(d[0, 0, 0, 0]), float(d[0, 3, 0, 0])
         (3.0, inf)
     """
-    where = "volshade.obscurance.occluder_distances"
+    where = "volshade.occluder_distances"
     density = jax.lax.stop_gradient(_checks.volume(density, "density", where))
     dirs = _direction_array(directions, "directions", where)
     return _occluder_distances(density, _static_dirs(dirs))
@@ -586,7 +590,7 @@ def obscurance(
         >>> bool(obs[3, 8, 8] < obs[12, 8, 8])
         True
     """
-    where = "volshade.obscurance.obscurance"
+    where = "volshade.obscurance"
     density = _checks.volume(density, "density", where)
     rho_fn = _rho_fn(rho, where)
     dirs = _direction_array(directions, "directions", where)
@@ -683,7 +687,7 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
                 value = jnp.broadcast_to(value, safe_dist.shape)
             if value.shape != safe_dist.shape:
                 raise ValueError(
-                    f"volshade.obscurance.obscurance: `rho(d, d_max)` must return one value "
+                    f"volshade.obscurance: `rho(d, d_max)` must return one value "
                     f"per distance (elementwise: the shape of `d`, here {safe_dist.shape}, "
                     f"the volume's axes reordered along the direction's lines), got shape "
                     f"{value.shape}.")
@@ -741,7 +745,7 @@ def threshold(
         >>> [round(x, 6) for x in threshold(jnp.array([0.1, 0.5, 0.9]), 0.2, 0.8).tolist()]
         [0.0, 0.5, 1.0]
     """
-    where = "volshade.obscurance.threshold"
+    where = "volshade.threshold"
     obscurance = _checks.finite(_checks.as_float_array(obscurance, "obscurance", where),
                                 "obscurance", where)
     dtype = obscurance.dtype
@@ -793,7 +797,10 @@ def obscurance_shading(
     $|N \cdot H|$, as :class:`volshade.Scene`'s ``shading="obscurance"`` does: a
     gradient's sign depends on the classification (a bright object and the same
     object classified from its dark side have opposite gradients), so a one-sided
-    rule would leave one of them black. $0^n$ is 0 with a zero gradient.
+    rule would leave one of them black. $0^n$ is 0 with a zero gradient. The
+    defaults (diffuse only, ``shininess`` 32, one-sided; the paper gives no values)
+    are this function's; a scene takes its :class:`volshade.Phong` coefficients
+    instead (``diffuse`` 0.65, ``specular`` 0.25, ``shininess`` 24), two-sided.
 
     Args:
         normal: ``(..., 3)`` surface normals (or gradients), ``(d, h, w)``.
@@ -826,7 +833,7 @@ def obscurance_shading(
         >>> obscurance_shading(n, n[0], n[0], jnp.array([0.5]), k_d=1.0, k_s=0.0).tolist()
         [0.5]
     """
-    where = "volshade.obscurance.obscurance_shading"
+    where = "volshade.obscurance_shading"
     normal = _checks.finite(_checks.as_float_array(normal, "normal", where), "normal", where)
     dtype = normal.dtype
     if normal.ndim < 1 or normal.shape[-1] != 3:

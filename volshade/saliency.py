@@ -118,7 +118,7 @@ def saliency(
         >>> float(saliency(obs)[4, 4, 4])
         1.0
     """
-    where = "volshade.saliency.saliency"
+    where = "volshade.saliency"
     _check_size(size, where)
     _checks.spacing(spacing, where)
     _checks.option(weighting, _WEIGHTS, "weighting", where)
@@ -305,6 +305,8 @@ def viewpoint_saliency(
 
     Raises:
         ValueError: shapes differ, bad ``viewpoints``, unknown ``visibility``.
+        TypeError: non-numeric volumes; ``viewpoints`` traced (they must be concrete),
+            a number or complex; ``visibility`` not a string; ``per_area`` not a bool.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
             opacity outside [0, 1], a negative saliency, NaN or inf in either volume.
 
@@ -320,7 +322,7 @@ def viewpoint_saliency(
         [1.0, 0.0]
     """
     return _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area,
-                               "volshade.saliency.viewpoint_saliency")[0]
+                               "volshade.viewpoint_saliency")[0]
 
 
 def _viewpoint_saliency(saliency, opacity, viewpoints, visibility, per_area, where):
@@ -381,7 +383,7 @@ def projected_area(
         >>> [float(a) for a in projected_area(alpha, jnp.array([[1.0, 0, 0], [0, 1.0, 0]]))]
         [16.0, 8.0]
     """
-    where = "volshade.saliency.projected_area"
+    where = "volshade.projected_area"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
     level = _checks.scalar(level, "level", where)
     # An opacity cannot exceed 1, so a level of 1 or more leaves every view empty, and
@@ -436,7 +438,7 @@ def most_salient_view(
         [-1.0, 0.0, 0.0]
     """
     return _select(saliency, opacity, viewpoints, per_area, visibility, jnp.argmax,
-                   "volshade.saliency.most_salient_view")
+                   "volshade.most_salient_view")
 
 
 def least_salient_view(
@@ -450,7 +452,7 @@ def least_salient_view(
     """The viewpoint of smallest :func:`viewpoint_saliency` (Figure 6 d); see
     :func:`most_salient_view`, whose errors it raises."""
     return _select(saliency, opacity, viewpoints, per_area, visibility, jnp.argmin,
-                   "volshade.saliency.least_salient_view")
+                   "volshade.least_salient_view")
 
 
 def modulate_opacity(
@@ -500,7 +502,7 @@ def modulate_opacity(
         >>> modulate_opacity(a, s, boost_top=0.1).tolist()
         [[[0.0, 0.25, 1.0]]]
     """
-    where = "volshade.saliency.modulate_opacity"
+    where = "volshade.modulate_opacity"
     opacity = _checks.volume(opacity, "opacity", where, unit_range=True)
     saliency = _saliency_volume(saliency, where)
     if saliency.shape != opacity.shape:

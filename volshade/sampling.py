@@ -21,6 +21,8 @@ from jax.scipy.ndimage import map_coordinates
 from . import _checks
 from ._types import Array, Float
 
+__all__ = ["trilinear"]
+
 _MODES = {"constant": "constant", "nearest": "nearest"}
 
 
@@ -46,6 +48,7 @@ def trilinear(
         ValueError: ``volume`` is not 3-D or 4-D or is empty, ``points`` does not end in 3,
             ``mode`` is unknown, or ``volume`` or ``points`` holds NaN or inf (at run
             time, an ``EquinoxRuntimeError``, when they are traced).
+        TypeError: ``volume`` or ``points`` not real numbers (e.g. a complex dtype).
 
     Example:
         >>> vol = jnp.arange(8.0).reshape(2, 2, 2)

@@ -31,9 +31,12 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks
-from ._numerics import correct_opacity, log1m
+from . import _checks, _numerics
 from ._types import Array, Float
+
+__all__ = [
+    "TransferFunction", "IntervalFeature", "Feature", "feature_opacities", "PRESETS", "preset",
+]
 
 _WHERE = "volshade.TransferFunction"
 
@@ -194,7 +197,7 @@ class TransferFunction(eqx.Module):
         alpha0 = self._interp(volume, self.opacities)
         if step is None:
             return alpha0
-        return correct_opacity(alpha0, jnp.asarray(step, volume.dtype) / self.step0)
+        return _numerics.correct_opacity(alpha0, jnp.asarray(step, volume.dtype) / self.step0)
 
     def _color(self, volume: Array) -> Array:
         return jnp.stack([self._interp(volume, self.colors[:, c]) for c in range(3)], axis=-1)
@@ -231,7 +234,7 @@ class TransferFunction(eqx.Module):
     def extinction(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
         r"""Extinction $\tau = -\ln(1-\alpha_0)/\Delta s_0$ per mm (inf where opaque)."""
         tf, volume = self._checked(volume, f"{_WHERE}.extinction")
-        return -log1m(tf._opacity(volume, None)) / self.step0
+        return -_numerics.log1m(tf._opacity(volume, None)) / self.step0
 
     def color(self, volume: Float[Array, "*shape"]) -> Float[Array, "*shape 3"]:
         """RGB colour of each value, shape ``(*shape, 3)``; NaN or inf, and values
@@ -486,5 +489,6 @@ def preset(name: str) -> TransferFunction:
 
     Raises:
         ValueError: unknown name (the message lists the valid ones).
+        TypeError: ``name`` not a string.
     """
     return _checks.option(name, PRESETS, "transfer-function preset", "volshade.transfer.preset")()
