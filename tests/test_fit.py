@@ -10,12 +10,14 @@ import sys
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 import pytest
 
 import volshade as vs
 from volshade.fit import (
+    _ColumnScaledSVD,
     _forward_by_reverse,
     _from_bounded,
     _parameter,
@@ -55,6 +57,52 @@ def test_fit_recovers_the_lao_radius_and_offset_from_an_image(monkeypatch):
         lambda s: (s.lao.radius, s.lao.offset), start,
         (result.values["lao.radius"], result.values["lao.offset"])))
     assert not checked
+
+
+def test_the_column_scaled_svd_keeps_a_column_of_small_norm():
+    # float32, 20000 rows: lineax's SVD cuts singular values below 20000 eps = 2.4e-3 of
+    # the largest, and drops a column of norm 1e-3 beside one of norm 1 (an LAO radius
+    # beside Phong's diffuse: a Jacobian of condition 589 over 8192 residuals); scaled
+    # to norm 1, both are solved, and a zero column gets no step
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=(20000, 3)) * np.array([1.0, 1e-3, 0.0])
+    truth = np.array([0.5, -2.0, 0.0])
+    op = lx.MatrixLinearOperator(jnp.asarray(a, jnp.float32))
+    b = jnp.asarray(a @ truth, jnp.float32)
+    plain = lx.linear_solve(op, b, lx.SVD()).value
+    assert abs(float(plain[1])) < 1e-2  # dropped
+    x = lx.linear_solve(op, b, _ColumnScaledSVD()).value
+    np.testing.assert_allclose(np.asarray(x), truth, rtol=1e-4, atol=1e-6)
+    assert float(x[2]) == 0.0
+    # the solve is linear in b, x = P b; its transpose (the inherited `transpose`, through
+    # which JAX transposes a linear solve) applies P^T: <P b, c> = <b, P^T c>
+    def solve(b):
+        return lx.linear_solve(op, b, _ColumnScaledSVD()).value
+
+    r = jnp.asarray(rng.normal(size=20000), jnp.float32)
+    c = jnp.asarray(rng.normal(size=3), jnp.float32)
+    (transposed,) = jax.linear_transpose(solve, r)(c)
+    np.testing.assert_allclose(float(jnp.dot(solve(r), c)), float(jnp.dot(r, transposed)),
+                               rtol=1e-4)
+
+
+@pytest.mark.slow
+def test_a_parameter_the_image_is_much_less_sensitive_to_still_moves():
+    # an LAO radius beside Phong's diffuse (Jacobian condition 589): unscaled, the least-
+    # squares solve (an SVD, cut at eps max(M, N) = 1.95e-3 for 8192 residuals) dropped
+    # the radius's direction and the fit stopped at 6.4996 reporting success
+    vol = vs.data.phantom("shells", shape=32)
+    truth = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), step=1.0,
+                     shading="phong", ambient="lao", phong=vs.Phong(diffuse=0.5),
+                     lao=vs.LocalAmbientOcclusion(5.0, directions=12, samples=8,
+                                                  max_radius=12.0))
+    cams = [vs.Camera.orbit(azimuth=a, elevation=20, image_shape=(32, 32)) for a in (30, 120)]
+    targets = [vs.render(truth, c) for c in cams]
+    start = eqx.tree_at(lambda s: (s.lao.radius, s.phong.diffuse), truth,
+                        (jnp.asarray(6.5, jnp.float32), jnp.asarray(0.65, jnp.float32)))
+    result = vs.fit(start, cams, targets, params=["lao.radius", "phong.diffuse"])
+    np.testing.assert_allclose(float(result.values["lao.radius"]), 5.0, rtol=1e-5)
+    np.testing.assert_allclose(float(result.values["phong.diffuse"]), 0.5, rtol=1e-5)
 
 
 @pytest.mark.slow
@@ -164,24 +212,29 @@ def test_fit_with_a_minimiser():
     np.testing.assert_allclose(float(result.values["phong.diffuse"]), 0.4, atol=1e-6)
 
 
+@pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
 @pytest.mark.parametrize("solver", [None, optx.BFGS(rtol=1e-9, atol=1e-12)],
                          ids=["gauss-newton", "bfgs"])
-def test_losses_are_the_mean_squared_differences_of_the_renders(solver):
+def test_losses_are_the_mean_squared_differences_of_the_renders(solver, weighted):
     # stopped after two steps, far from the optimum: the reported losses (read from the
     # solver's state, which these two hold) are those of the start's and the fitted
-    # scene's renders, computed here apart
+    # scene's renders, computed here apart: the weighted mean sum(w d^2) / sum(w), with
+    # weights other than 0 and 1 (for which sqrt(w) = w)
     vol = vs.data.phantom("shells", shape=8).astype(jnp.float64)
     truth = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"),
                      background=(0.2, 0.5, 0.7))
     cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(6, 6))
     target = vs.render(truth, cam)[..., :3]
+    w = (np.random.default_rng(4).uniform(0.25, 4.0, (6, 6, 3)) if weighted
+         else np.ones((6, 6, 3)))
     start = eqx.tree_at(lambda s: s.background, truth, jnp.full(3, 0.9))
     result = vs.fit(start, cam, target, params={"background": (0.0, 1.0)}, max_steps=2,
-                    throw=False, solver=solver)
+                    throw=False, solver=solver, weights=jnp.asarray(w) if weighted else None)
     assert result.result != optx.RESULTS.successful  # the step limit
 
     def loss(scene):
-        return np.mean((np.asarray(vs.render(scene, cam))[..., :3] - np.asarray(target)) ** 2)
+        diff = np.asarray(vs.render(scene, cam))[..., :3] - np.asarray(target)
+        return np.sum(w * diff**2) / np.sum(w)
 
     np.testing.assert_allclose(float(result.initial_loss), loss(start), rtol=1e-12)
     np.testing.assert_allclose(float(result.loss), loss(result.scene), rtol=1e-12)
