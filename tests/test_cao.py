@@ -95,7 +95,9 @@ def test_traced_clips_are_checked_where_used():
         return vs.contextual_ao(ALPHA, clip=clip, unclipped=unclipped, **KW)
 
     fine = eqx.filter_jit(run)(jnp.eye(3), jnp.asarray([5.0, 5.0, 5.0]))
-    assert np.all(np.isfinite(np.asarray(fine)))
+    clipped = vs.clip_opacity(ALPHA, vs.BoxClip(center=(5.0, 5.0, 5.0), half_size=2.0))
+    np.testing.assert_allclose(np.asarray(fine), np.asarray(vs.lao(clipped, **KW)), rtol=0,
+                               atol=1e-12)
     for rotation, centre in ((2 * jnp.eye(3), [5.0, 5.0, 5.0]), (jnp.eye(3), [5.0, jnp.nan, 5.0])):
         with pytest.raises(eqx.EquinoxRuntimeError, match="orthonormal"):
             jax.block_until_ready(eqx.filter_jit(run)(rotation, jnp.asarray(centre)))

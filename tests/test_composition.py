@@ -444,10 +444,21 @@ def test_grad_under_vmap_equals_batched_grad():
         np.testing.assert_allclose(x, y, atol=1e-13)
 
 
-def test_gradient_at_singular_points_is_finite_for_standard():
+def test_gradient_at_singular_points_is_exact_for_standard():
+    # opacities 1, 0 and 1: the derivative of sum(T_i C_i) + 1 - prod(1 - a_j), written
+    # as products (no division: exact at the ends), in the opacities and the colours
     c, a, _ = _hard_inputs([1.0, 0.0, 1.0], [0, 0, 0], jnp.float64)
-    g = jax.grad(lambda a: jcomposite(c, a).sum())(a)
-    assert np.all(np.isfinite(g))
+
+    def by_products(c, a):
+        rgb, t = jnp.zeros(3, a.dtype), jnp.ones((), a.dtype)
+        for i in range(a.shape[0]):
+            rgb, t = rgb + t * c[i], t * (1 - a[i])
+        return jnp.sum(rgb) + 1 - t
+
+    got = jax.grad(lambda c, a: jcomposite(c, a).sum(), argnums=(0, 1))(c, a)
+    want = jax.grad(by_products, argnums=(0, 1))(c, a)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-14, atol=1e-15)
 
 
 # Opacities at the ends of [0, 1] with the one-sided derivative that a fit sees there: a

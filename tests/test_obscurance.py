@@ -395,7 +395,10 @@ def test_obscurance_shading_blinn_phong():
     rgb = shade(n, light, view, jnp.ones((4, 3)) * obs[:, None], k_d=0.7, k_s=0.3, shininess=4.0)
     np.testing.assert_allclose(np.asarray(rgb), np.asarray(out)[:, None] * np.ones(3), rtol=1e-14)
     jac = jax.jit(jax.jacrev(lambda x: obscurance_shading(x, light, view, obs, k_s=0.5)))(n)
-    assert bool(jnp.all(jnp.isfinite(jac)))
+    assert bool(jnp.all(jnp.isfinite(jac)))  # the zero normal's row too
+    for row in (0, 1, 3):  # the others against central differences
+        check_grad_fd(lambda x, row=row: obscurance_shading(x, light, view, obs, k_s=0.5)[row],
+                      n, h=1e-6, n_dirs=2)
     # two-sided: the normal pointing away from the light is lit as the one towards it
     both = obscurance_shading(n, light, view, obs, k_d=0.7, k_s=0.3, shininess=4.0,
                               two_sided=True)
