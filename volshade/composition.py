@@ -36,7 +36,8 @@ rounding, hard cases included); forward mode (``jax.jvp``) is not available ther
 **Reading the samples.** :func:`composite` takes the samples of each ray along its
 last axes, ``(..., S, 3)`` and ``(..., S)``, while a ``lax.scan`` over the samples
 needs them in front: moving them there is a transpose of every input, which on a CPU
-cost five times standard compositing itself. On a CPU the values are therefore
+took 1.6-1.9 times as long as the whole of :func:`composite`'s standard compositing
+(16384 rays x 256 samples, float32, a 2-core CPU). On a CPU the values are therefore
 computed by a loop that reads 8 samples of every ray per iteration where they lie (4
 for importance-aware compositing; ``lax.platform_dependent``); derivatives (forward
 and reverse mode, and the values that come with them), and other platforms, use the
