@@ -277,10 +277,9 @@ def viewpoint_saliency(
     over the image plane (voxel$^2$), $\sum_{\text{lines}} |v_a| \sum_p \alpha'(p)
     V(p) S(p)$, each line standing for $|v_a|$ voxel$^2$ of the image (the opaque
     ball's scores from the 42 views of ``icosphere(1)`` differ by 2.6%); empty
-    voxels count for nothing.
-    Use it for surfaces. With ``per_area=True`` the sum is divided by
-    :func:`projected_area` (the most salient view per unit of projected area,
-    Figure 6 f-g); a viewpoint that sees an empty volume gets 0.
+    voxels count for nothing. Use it for surfaces. With ``per_area=True`` the sum is
+    divided by :func:`projected_area` (the most salient view per unit of projected
+    area, Figure 6 f-g); a viewpoint that sees an empty volume gets 0.
 
     On measured data, restrict the saliency to what should be looked at (e.g.
     ``saliency * (opacity > 0)``, and 0 near faces where the scan is cut). The
