@@ -95,7 +95,7 @@ def contextual_ao(
             take its gradient (zero for a precomputed array).
         directions, radius, offset, samples, weights, opacity_correction, max_radius:
             as for :func:`~volshade.lao.lao`.
-        brick_size: edge (voxels) of the bricks that are marched or kept whole.
+        brick_size: edge (voxels) of the bricks that are marched or kept whole (default 8).
 
     Returns:
         ``(D, H, W)`` AO in ``[0, 1]``, in the dtype of ``alpha`` (computed in float32
