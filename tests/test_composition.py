@@ -418,7 +418,8 @@ def test_custom_vjp_any_state_cotangent():
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_faint_samples_on_empty_rays_have_finite_gradients(dtype):
-    # opacities too small to change T = 1 (1 - alpha rounds to 1) but above sqrt(tiny)
+    # opacities too small to change T = 1 (1 - alpha rounds to 1), below the visibility
+    # floor (float32's sqrt(tiny), 1.1e-19: the step is empty) and above it
     faint = [1.4e-45, 1e-30, 1e-17, 1e-10] if dtype == jnp.float64 else [1e-19, 1e-12, 1e-9]
     for alpha in faint:
         a = jnp.asarray([0.0, alpha, 0.0, 0.6, alpha], dtype)

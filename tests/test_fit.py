@@ -60,7 +60,7 @@ def test_fit_recovers_the_lao_radius_and_offset_from_an_image(monkeypatch):
 
 
 def test_the_column_scaled_svd_keeps_a_column_of_small_norm():
-    # float32, 20000 rows: lineax's SVD cuts singular values below 20000 eps = 2.4e-3 of
+    # float32, 20000 rows: lineax's SVD cuts singular values below 2 eps 20000 = 4.8e-3 of
     # the largest, and drops a column of norm 1e-3 beside one of norm 1 (an LAO radius
     # beside Phong's diffuse: a Jacobian of condition 589 over 8192 residuals); scaled
     # to norm 1, both are solved, and a zero column gets no step
@@ -74,6 +74,14 @@ def test_the_column_scaled_svd_keeps_a_column_of_small_norm():
     x = lx.linear_solve(op, b, _ColumnScaledSVD()).value
     np.testing.assert_allclose(np.asarray(x), truth, rtol=1e-4, atol=1e-6)
     assert float(x[2]) == 0.0
+    # a column of entries beyond 1e19 (their squares overflow float32) or below 1e-19
+    # (theirs flush to 0) is scaled through its largest entry, not taken as inf or 0
+    for size in (1e20, 1e-21):
+        wide = jnp.asarray(a[:, :2] * np.array([1.0, size]), jnp.float32)
+        want = np.array([0.5, -2.0 / size])
+        got = lx.linear_solve(lx.MatrixLinearOperator(wide), wide @ jnp.asarray(
+            want, jnp.float32), _ColumnScaledSVD()).value
+        np.testing.assert_allclose(np.asarray(got), want, rtol=1e-4)
     # the solve is linear in b, x = P b; its transpose (the inherited `transpose`, through
     # which JAX transposes a linear solve) applies P^T: <P b, c> = <b, P^T c>
     def solve(b):
@@ -89,7 +97,7 @@ def test_the_column_scaled_svd_keeps_a_column_of_small_norm():
 @pytest.mark.slow
 def test_a_parameter_the_image_is_much_less_sensitive_to_still_moves():
     # an LAO radius beside Phong's diffuse (Jacobian condition 589): unscaled, the least-
-    # squares solve (an SVD, cut at eps max(M, N) = 1.95e-3 for 8192 residuals) dropped
+    # squares solve (an SVD, cut at 2 eps max(M, N) = 1.95e-3 for 8192 residuals) dropped
     # the radius's direction and the fit stopped at 6.4996 reporting success
     vol = vs.data.phantom("shells", shape=32)
     truth = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), step=1.0,

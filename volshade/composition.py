@@ -285,7 +285,8 @@ def _step_terms(t_acc: Array, gap: Array, at_peak: Array, alpha_s: Array) -> _St
     alpha_p = a + alpha_s * one_minus_a                # eq. 8b; alpha_s on an empty ray
     t_new = t_acc * (1 - alpha_s)                      # eq. 8c
     alpha_new = 1 - t_new
-    # alpha' below float32's sqrt(tiny), 1.1e-19, counts as nothing, in every dtype: it
+    # alpha' below float32's sqrt(tiny), 1.1e-19, counts as nothing, in float32 and wider
+    # dtypes (float16 keeps its own, 7.8e-3; `composite` steps half precision in float32): it
     # needs alpha_s below 2.2e-19, which cannot change T, and 1 / alpha'^2 in the gradient
     # stays finite. It could change C: eq. 8 hands the colour to a sample of higher
     # importance however faint (m -> 0 with alpha' -> alpha_s gives p -> 0), so a floor of
@@ -374,8 +375,9 @@ def importance_step(state: ImportanceState, sample: Sample) -> ImportanceState:
     whose exponents are $\le 0$ and whose argument lies in
     $[e^{-|K_i - I_s|}, 1]$: no exp overflows for any importance gap and no
     division by zero happens (the divisions are taken where $\alpha'$ exceeds
-    $\sqrt{\text{tiny}}$ of float32, $1.1 \cdot 10^{-19}$, also in float64: a step
-    with a smaller $\alpha'$ is taken as empty, in both alike. It cannot change
+    $\sqrt{\text{tiny}}$ of float32, $1.1 \cdot 10^{-19}$, also in float64 (in float16
+    its own, $7.8 \cdot 10^{-3}$: :func:`composite` steps half precision in float32): a
+    step with a smaller $\alpha'$ is taken as empty, in both alike. It cannot change
     $T$, but in exact arithmetic it could change $C$: behind samples of much lower
     importance, $m \approx 0$, eq. 8 hands the colour to a new sample however faint.
     The only zero $\alpha_{i+1}$ is on an empty

@@ -426,7 +426,7 @@ def most_salient_view(
             shapes; ``viewpoints`` not of shape ``(V, 3)`` with ``V >= 1``, or holding
             NaN, inf or a zero vector; an unknown ``visibility``.
         TypeError: non-numeric inputs; ``viewpoints`` traced (they must be concrete),
-            a number or complex; ``per_area`` not a bool.
+            a number or complex; ``per_area`` not a bool; ``visibility`` not a string.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in
             ``saliency`` or ``opacity``, ``opacity`` outside [0, 1].
 
