@@ -46,6 +46,20 @@ def test_render_picks_the_volumes_preset_and_classification(tmp_path, monkeypatc
     assert (presets, classifications) == (["corner", "shells"], ["pre", "post"])
 
 
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
+def test_the_default_view_holds_the_whole_visible_volume(tmp_path, projection):
+    # the corner phantom's walls reach the corners of its cube: at the old default
+    # distance, 2.5, they ran off the image's bottom, left and right; the default view
+    # now holds the sphere about the centre that holds them, and nothing touches the
+    # border (the background is black)
+    out = tmp_path / "corner.png"
+    assert cli.main(["render", "corner", "--out", str(out), "--size", "16", "--image", "48",
+                     "--projection", projection]) == 0
+    img = io.imread(out).astype(int).max(axis=-1)
+    border = np.concatenate([img[0], img[-1], img[:, 0], img[:, -1]])
+    assert border.max() == 0 and (img > 0).mean() > 0.2
+
+
 def test_python_m_volshade_runs_the_cli():
     result = subprocess.run([sys.executable, "-m", "volshade", "render", "--help"],
                             capture_output=True, text=True, check=False)
@@ -203,6 +217,8 @@ def test_options_that_do_not_apply_are_refused(tmp_path, capsys):
          "--d-max must be a finite number > 0 (mm), got inf"),
         (["shells", "--ambient", "obscurance", "--low", "0.7", "--high", "0.2"],
          "--low must be <= --high, got 0.7 and 0.2."),
+        (["shells", "--projection", "orthographic", "--distance", "3"],
+         "--distance applies to perspective views"),
         (["shells", "--ambient", "obscurance", "--low", "1.5"],
          "--low must be <= --high, got 1.5 and 1 (the default for phantoms)"),
     ]:

@@ -121,6 +121,41 @@ def _ambient_options(args: argparse.Namespace, measured: bool) -> dict:
     return {}
 
 
+def _visible_radius(opacity: np.ndarray, spacing: tuple[float, float, float]) -> float:
+    """The radius, in scene units (the volume's longest side is 1), of the sphere about
+    the volume's centre that holds every voxel the transfer function shows (opacity
+    above 0): the camera looks at the centre, so a view that holds the sphere holds
+    them. The whole box's where nothing shows."""
+    shape = np.asarray(opacity.shape)
+    physical = shape * np.asarray(spacing)
+    scale = float(physical.max())
+    shown = np.argwhere(opacity > 0)
+    if shown.size == 0:
+        shown = np.argwhere(np.ones(opacity.shape, bool))
+    # voxel centres, and each voxel's half diagonal
+    centres = ((shown + 0.5) / shape - 0.5) * physical / scale
+    half_voxel = 0.5 * float(np.linalg.norm(np.asarray(spacing))) / scale
+    return float(np.sqrt(np.max(np.sum(centres**2, axis=1)))) + half_voxel
+
+
+def _fitting_camera(args: argparse.Namespace, opacity: np.ndarray,
+                    spacing: tuple[float, float, float]) -> Camera:
+    """The camera of the options: at ``--distance``, or (perspective, by default) the
+    nearest at which the visible part of the volume fits the image (its field of view,
+    30 degrees, holds the sphere of :func:`_visible_radius`, 2% spare); an orthographic
+    view is as high as that sphere."""
+    radius = 1.02 * _visible_radius(opacity, spacing)
+    fov = 30.0
+    if args.projection == "orthographic":
+        return Camera.orbit(azimuth=args.azimuth, elevation=args.elevation,
+                            image_shape=(args.image, args.image), projection="orthographic",
+                            width=2 * radius)
+    distance = (radius / math.sin(math.radians(fov / 2)) if args.distance is None
+                else args.distance)
+    return Camera.orbit(azimuth=args.azimuth, elevation=args.elevation, distance=distance,
+                        image_shape=(args.image, args.image), fov=fov)
+
+
 def _ambient_params(ambient: str, options: dict, voxel: float, measured: bool) -> dict:
     """The Scene's ``lao`` or ``obscurance`` from :func:`_ambient_options`, lengths in
     voxels of the smallest edge ``voxel`` (mm)."""
@@ -223,6 +258,10 @@ def render_command(args: argparse.Namespace) -> int:
         raise ValueError(f"--out must name a .png file, got {str(args.out)!r}.")
     # (Scene refuses them too; here the message names the option) a PNG would clip them
     # silently; NaN is left to the render's own check
+    if args.projection == "orthographic" and args.distance is not None:
+        raise ValueError("--distance applies to perspective views: an orthographic view is "
+                         "sized to hold what the transfer function shows; leave --distance "
+                         "out.")
     if any(c < 0 or c > 1 for c in args.background):
         raise ValueError(f"--background must be three numbers in [0, 1] (R G B), got "
                          f"{' '.join(f'{c:g}' for c in args.background)}.")
@@ -233,8 +272,7 @@ def render_command(args: argparse.Namespace) -> int:
     params = _ambient_params(args.ambient, options, voxel, measured)
     tf = transfer.preset(args.preset or _PRESETS.get(args.volume, "grey"))
     classification = args.classification or ("pre" if args.volume in _LABELS else "post")
-    cam = Camera.orbit(azimuth=args.azimuth, elevation=args.elevation, distance=args.distance,
-                       image_shape=(args.image, args.image), projection=args.projection)
+    cam = _fitting_camera(args, np.asarray(tf.opacity(vol)), spacing)
     step = args.step if args.step is not None else voxel / 2
     scene = Scene(volume=vol, spacing=spacing, transfer=tf, shading=args.shading,
                   ambient=args.ambient, step=step, background=tuple(args.background),
@@ -294,8 +332,11 @@ def _parser() -> argparse.ArgumentParser:
                           help="degrees about the d axis; 0 looks along -h (a head from the front)")
     p_render.add_argument("--elevation", type=float, default=20.0,
                           help="degrees; 90 looks down from +d")
-    p_render.add_argument("--distance", type=float, default=2.5,
-                          help="from the volume's centre; its longest side is 1")
+    p_render.add_argument("--distance", type=float, default=None,
+                          help="from the volume's centre; its longest side is 1 (default: "
+                               "the nearest at which what the transfer function shows "
+                               "fits the image; perspective only: an orthographic view "
+                               "fits it)")
     p_render.add_argument("--projection", default="perspective",
                           choices=["perspective", "orthographic"], help="camera projection")
     p_render.add_argument("--image", type=int, default=256, help="image edge in pixels")
