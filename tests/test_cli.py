@@ -192,6 +192,11 @@ def test_ambient_options_in_mm_and_the_defaults_for_real_data(tmp_path, monkeypa
                        monkeypatch).obscurance
     np.testing.assert_allclose(values(params, "smoothing", "high", "d_max"), [0.0, 1.0, 32.0],
                                rtol=1e-7)
+    # but the corner phantom's walls are labels, smoothed by one voxel edge: unsmoothed,
+    # no wall voxel has a strictly denser neighbour and the obscurance is 1 everywhere
+    params = _scene_of(["corner", *out, "--size", "8", "--ambient", "obscurance"],
+                       monkeypatch).obscurance
+    np.testing.assert_allclose(values(params, "smoothing", "high"), [1.0, 1.0], rtol=1e-7)
 
 
 def test_options_that_do_not_apply_are_refused(tmp_path, capsys):

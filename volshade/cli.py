@@ -156,15 +156,16 @@ def _fitting_camera(args: argparse.Namespace, opacity: np.ndarray,
                         image_shape=(args.image, args.image), fov=fov)
 
 
-def _ambient_params(ambient: str, options: dict, voxel: float, measured: bool) -> dict:
+def _ambient_params(ambient: str, options: dict, voxel: float, smooth: bool) -> dict:
     """The Scene's ``lao`` or ``obscurance`` from :func:`_ambient_options`, lengths in
-    voxels of the smallest edge ``voxel`` (mm)."""
+    voxels of the smallest edge ``voxel`` (mm); ``smooth``: the obscurance's smoothing
+    defaults to one voxel edge (else 0)."""
     if ambient == "lao":
         return {"lao": LocalAmbientOcclusion(options["radius"] / voxel,
                                              offset=options["offset"] / voxel)}
     if ambient == "obscurance":
         smoothing = options["smoothing"]
-        smoothing = (voxel if measured else 0.0) if smoothing is None else smoothing
+        smoothing = (voxel if smooth else 0.0) if smoothing is None else smoothing
         return {"obscurance": ObscuranceParams(
             d_max=options["d_max"] / voxel, low=options["low"], high=options["high"],
             smoothing=smoothing / voxel, color_bleeding=options["color_bleeding"])}
@@ -269,7 +270,10 @@ def render_command(args: argparse.Namespace) -> int:
     options = _ambient_options(args, measured)
     vol, spacing = _load_volume(args.volume, args.downsample, args.size, measured)
     voxel = float(min(spacing))
-    params = _ambient_params(args.ambient, options, voxel, measured)
+    # smoothed by default: measured data (its noise draws the voxel grid) and labels (a
+    # wall of one label has no strictly denser neighbour to occlude it: obscurance 1)
+    params = _ambient_params(args.ambient, options, voxel,
+                             measured or args.volume in _LABELS)
     tf = transfer.preset(args.preset or _PRESETS.get(args.volume, "grey"))
     classification = args.classification or ("pre" if args.volume in _LABELS else "post")
     cam = _fitting_camera(args, np.asarray(tf.opacity(vol)), spacing)
@@ -358,8 +362,8 @@ def _parser() -> argparse.ArgumentParser:
                             help="largest occluder distance in mm (default: 32)")
     obscurance.add_argument("--smoothing", type=float, default=None,
                             help="Gaussian sigma in mm on the density before the occluder "
-                                 "search (default: one voxel edge for real data, 0 for "
-                                 "phantoms)")
+                                 "search (default: one voxel edge for real data and the "
+                                 "corner phantom's labels, 0 for the other phantoms)")
     obscurance.add_argument("--low", type=float, default=None,
                             help="display threshold: obscurance below it is 0 (default: 0)")
     obscurance.add_argument("--high", type=float, default=None,
