@@ -89,6 +89,12 @@ def test_cli_errors(tmp_path, capsys):
         cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--ambient",
                   "feature_ao"])
     assert "invalid choice: 'feature_ao'" in capsys.readouterr().err
+    # an unknown option: the command's usage and name, not the top-level parser's
+    with pytest.raises(SystemExit):
+        cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--bogus"])
+    err = capsys.readouterr().err
+    assert "usage: volshade render" in err
+    assert "volshade render: error: unrecognized arguments: --bogus" in err
     # every bad value: one line on stderr and exit status 2, as argparse's own errors
     bogus = tmp_path / "bogus.nii.gz"
     bogus.write_text("not an image")

@@ -371,6 +371,7 @@ def _parser() -> argparse.ArgumentParser:
                                  "for real data, 1 for phantoms)")
     obscurance.add_argument("--colour-bleeding", action="store_true",
                             help="tint by the occluders' colours")
+    parser.set_defaults(_commands={"demo": p_demo, "render": p_render})
     return parser
 
 
@@ -384,7 +385,9 @@ def _check_message(err: Exception) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    args, unknown = _parser().parse_known_args(argv)
+    if unknown:  # with the command's usage and name, not the top-level one's
+        args._commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         for name in ("size", "image", "downsample"):
             if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
