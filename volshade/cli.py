@@ -124,8 +124,8 @@ def _ambient_options(args: argparse.Namespace, measured: bool) -> dict:
 def _visible_radius(opacity: np.ndarray, spacing: tuple[float, float, float]) -> float:
     """The radius, in scene units (the volume's longest side is 1), of the sphere about
     the volume's centre that holds every voxel the transfer function shows (opacity
-    above 0): the camera looks at the centre, so a view that holds the sphere holds
-    them. The whole box's where nothing shows."""
+    above 0; where nothing shows, every voxel): the camera looks at the centre, so a
+    view that holds the sphere holds them."""
     shape = np.asarray(opacity.shape)
     physical = shape * np.asarray(spacing)
     scale = float(physical.max())
