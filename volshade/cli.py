@@ -130,8 +130,8 @@ def _visible_radius(opacity: np.ndarray, spacing: tuple[float, float, float]) ->
     physical = shape * np.asarray(spacing)
     scale = float(physical.max())
     shown = np.argwhere(opacity > 0)
-    if shown.size == 0:
-        shown = np.argwhere(np.ones(opacity.shape, bool))
+    if shown.size == 0:  # the box's corners
+        return 0.5 * float(np.linalg.norm(physical)) / scale
     # voxel centres, and each voxel's half diagonal
     centres = ((shown + 0.5) / shape - 0.5) * physical / scale
     half_voxel = 0.5 * float(np.linalg.norm(np.asarray(spacing))) / scale

@@ -791,13 +791,13 @@ def composite(
     unroll = (1 if jax.default_backend() == "cpu" else 8) if unroll is None else (
         _checks.positive_int(unroll, "unroll", where))
     try:
-        given = jnp.asarray(colors).dtype  # (a nested list too)
+        colors = jnp.asarray(colors)  # (a nested list too; converted once)
     except (TypeError, ValueError):
-        given = None  # not numbers: as_float_array names it
-    if given is not None and jnp.issubdtype(given, jnp.integer):
+        pass  # not numbers: as_float_array names them
+    if hasattr(colors, "dtype") and jnp.issubdtype(colors.dtype, jnp.integer):
         # 0-255 colours would composite to values up to 255 (as `save_png` and `vs.fit`
         # refuse integer images)
-        raise TypeError(f"{where}: `colors` has the integer dtype {given}; "
+        raise TypeError(f"{where}: `colors` has the integer dtype {colors.dtype}; "
                         f"opacity-weighted colours are floats: divide 0-255 colours by 255 "
                         f"and multiply them by the opacities.")
     colors = _checks.as_float_array(colors, "colors", where)

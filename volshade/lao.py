@@ -616,6 +616,14 @@ def _divided(x, divisor, xp):
     return x / divisor if xp is np else scaled_down(x, divisor)
 
 
+def _as_given(given, checked: Array, dtype) -> tuple:
+    """``(xp, values)`` to check and normalise a direction set or weights with: NumPy and
+    ``given`` in float64 where its values are known, else ``jnp`` and ``checked`` (its
+    array, type- and shape-checked) in ``dtype``."""
+    known = _checks.concrete(given)
+    return (jnp, checked.astype(dtype)) if known is None else (np, known.astype(np.float64))
+
+
 def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
     if isinstance(directions, int | np.integer) and not isinstance(directions, bool):
         if directions < 1:
@@ -645,8 +653,7 @@ def _directions_array(directions, dtype, where: str = _WHERE) -> Array:
                "non-zero finite 3-vector.")
     # known directions are checked and scaled on the host, as given in float64 (with x64
     # off, jnp.asarray rounds them to float32 first, where 1e-50 is 0 and 1e40 inf)
-    known = _checks.concrete(directions)
-    xp, dirs = (jnp, dirs.astype(dtype)) if known is None else (np, known.astype(np.float64))
+    xp, dirs = _as_given(directions, dirs, dtype)
     peak = xp.max(xp.abs(dirs), axis=-1, keepdims=True)
     dirs = _checks.refuse(dirs, [(~xp.all(xp.isfinite(dirs)) | xp.any(peak == 0), message)],
                           where)
@@ -745,8 +752,7 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
             checked = _weights_array(weights, n_dirs, where)
         # known weights are checked and normalised on the host, as given in float64 (as
         # the directions are)
-        known = _checks.concrete(weights)
-        xp, w = (jnp, checked.astype(dtype)) if known is None else (np, known.astype(np.float64))
+        xp, w = _as_given(weights, checked, dtype)
         peak = xp.max(w)
         w = _checks.refuse(w, [(~xp.all(xp.isfinite(w)) | xp.any(w < 0) | ~(peak > 0),
                                 "`weights` must be finite, >= 0 and not all zero.")], where)
