@@ -79,6 +79,11 @@ def test_demo_writes_pngs(tmp_path, monkeypatch, capsys):
     assert "skipping the Colin27 head" in out and "set VOLSHADE_DATA" in out
     pngs = sorted(p.name for p in pathlib.Path(tmp_path / "demo").glob("*.png"))
     assert "shells_phong.png" in pngs and "shells_side_by_side.png" in pngs
+    # three 20-pixel panels 4 pixels apart, under a band with their captions
+    row = io.imread(tmp_path / "demo" / "shells_side_by_side.png")
+    assert row.shape[1] == 3 * 20 + 2 * 4 and row.shape[0] > 20
+    band = row[: row.shape[0] - 20, :20]
+    assert np.any(band != band[0, 0])  # a caption is drawn on it
 
 
 def test_cli_errors(tmp_path, capsys):

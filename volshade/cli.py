@@ -41,11 +41,13 @@ from .shading import SHADERS
 
 @dataclass
 class Job:
-    """One image of the demo: a name, a scene factory and a camera."""
+    """One image of the demo: a name, a scene factory, a camera and the caption it gets
+    in the side-by-side image."""
 
     name: str
     make_scene: Callable[[], Scene]
     camera: Camera
+    caption: str
 
 
 # volumes with a preset of their own (any other: "grey"), and label volumes, which are
@@ -185,20 +187,38 @@ def _run_jobs(jobs: list[Job], out: pathlib.Path) -> list[tuple[str, float]]:
     return timings, rendered
 
 
-def _side_by_side(images: list[np.ndarray]) -> np.ndarray:
-    gap = np.ones((images[0].shape[0], 4, images[0].shape[2]), images[0].dtype)
-    row = [images[0]]
-    for img in images[1:]:
-        row += [gap, img]
-    return np.concatenate(row, axis=1)
+def _side_by_side(images: list[np.ndarray], captions: list[str],
+                  background: tuple[float, float, float]) -> np.ndarray:
+    """The images in a row, 4 white pixels apart, each over a band with its caption."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    h, w = images[0].shape[:2]
+    size = max(8, h // 14)
+    while size > 8 and max(ImageFont.load_default(size=size).getlength(c)
+                           for c in captions) > w - 4:
+        size -= 1
+    font = ImageFont.load_default(size=size)
+    band = size + size // 2
+    row = Image.new("RGB", (len(images) * (w + 4) - 4, band + h), (255, 255, 255))
+    fill = tuple(round(255 * c) for c in background)
+    draw = ImageDraw.Draw(row)
+    for k, (img, caption) in enumerate(zip(images, captions, strict=True)):
+        x = k * (w + 4)
+        rgb = np.round(255 * np.clip(img[..., :3], 0, 1)).astype(np.uint8)
+        row.paste(Image.fromarray(rgb), (x, band))
+        draw.rectangle((x, 0, x + w - 1, band - 1), fill=fill)
+        draw.text((x + w / 2, band / 2), caption, fill=(255, 255, 255), font=font,
+                  anchor="mm")
+    return np.asarray(row, np.float32) / 255
 
 
 def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
     """Render the built-in phantom (and Colin27 when available) to PNGs in ``out``.
 
-    Side by side, for each volume: emission-absorption, Blinn-Phong, Blinn-Phong
-    with local ambient occlusion; for the head also importance-aware composition
-    revealing the skull through the skin inside a focus region.
+    Side by side and captioned (``<volume>_side_by_side.png``), for each volume:
+    emission-absorption, Blinn-Phong, Blinn-Phong with local ambient occlusion; for the
+    head also importance-aware composition revealing the skull through the skin inside a
+    focus region.
     """
     shape = (image, image)
     bg = (0.08, 0.08, 0.1)
@@ -210,10 +230,10 @@ def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
                                        samples=8)
     shells = dict(volume=cut, transfer=transfer.preset("shells"), background=bg)
     jobs = [
-        Job("shells_none", lambda: Scene(**shells), cam),
-        Job("shells_phong", lambda: Scene(**shells, shading="phong"), cam),
+        Job("shells_none", lambda: Scene(**shells), cam, "no shading"),
+        Job("shells_phong", lambda: Scene(**shells, shading="phong"), cam, "Phong"),
         Job("shells_lao", lambda: Scene(**shells, shading="phong", ambient="lao",
-                                        lao=shells_lao), cam),
+                                        lao=shells_lao), cam, "Phong + LAO"),
     ]
     try:
         head, spacing = data.load("colin27", downsample=downsample)
@@ -231,21 +251,23 @@ def demo(out: pathlib.Path, size: int, image: int, downsample: int) -> int:
                                          samples=8)
         skull = Importance(intensity=-30.0, background=-1000.0)
         jobs += [
-            Job("colin27_none", lambda: Scene(**skin), front),
-            Job("colin27_phong", lambda: Scene(**skin, shading="phong"), front),
+            Job("colin27_none", lambda: Scene(**skin), front, "no shading"),
+            Job("colin27_phong", lambda: Scene(**skin, shading="phong"), front, "Phong"),
             Job("colin27_lao", lambda: Scene(**skin, shading="phong", ambient="lao",
-                                             lao=head_lao), front),
+                                             lao=head_lao), front, "Phong + LAO"),
             Job("colin27_importance", lambda: Scene(
                 **common, transfer=transfer.preset("head_skull"), shading="phong",
                 composition="importance", importance=skull,
-                focus=Focus(center=(0.45, 0.5), radius=0.22, kind="circular")), front),
+                focus=Focus(center=(0.45, 0.5), radius=0.22, kind="circular")), front,
+                "importance: skull"),
         ]
     t0 = time.perf_counter()
     timings, rendered = _run_jobs(jobs, out)
     for prefix in ("shells", "colin27"):
-        panel = [img for name, img in rendered.items() if name.startswith(prefix)]
+        panel = [job for job in jobs if job.name.startswith(prefix)]
         if len(panel) > 1:
-            save_png(out / f"{prefix}_side_by_side.png", _side_by_side(panel))
+            save_png(out / f"{prefix}_side_by_side.png", _side_by_side(
+                [rendered[job.name] for job in panel], [job.caption for job in panel], bg))
     total = time.perf_counter() - t0
     parts = ", ".join(f"{name} {sec:.1f}s" for name, sec in timings)
     print(f"volshade demo: {len(jobs)} images in {total:.1f}s on {jax.devices()[0].platform} "
