@@ -287,3 +287,17 @@ def test_every_clip_shape_keeps_its_leaves_dtype(make):
     # a float32 clip stays float32 under x64 (the box's half-sizes were cast to float64)
     clip = make(jnp.float32, jnp.eye(3, dtype=jnp.float32))
     assert {leaf.dtype for leaf in jax.tree.leaves(clip)} == {jnp.dtype(jnp.float32)}
+
+
+def test_affected_mask_compiles_once_for_a_radius_given_as_a_number_or_an_array():
+    # found by a review: a Python-number radius reached the compiled function weakly
+    # typed, and the same radius as an array compiled it again
+    import sys
+
+    reach = sys.modules["volshade.clip"]._compiled_reach
+    clip = vs.SphereClip(center=(4.0, 4.0, 4.0), radius=2.0)
+    first = vs.affected_mask((8, 8, 8), clip, radius=2.0)
+    size = reach._cached._cache_size()
+    second = vs.affected_mask((8, 8, 8), clip, radius=jnp.asarray(2.0, clip.radius.dtype))
+    assert reach._cached._cache_size() == size
+    np.testing.assert_array_equal(np.asarray(first), np.asarray(second))

@@ -392,6 +392,31 @@ def test_bounded_parameters_round_trip_and_stay_strictly_inside(bounds, dtype):
     assert np.all(np.asarray(grad)[:3] != 0)  # a bijection inside
 
 
+def test_traced_initial_values_outside_their_bounds_are_refused_by_name():
+    # found by a review: under jax.vmap or jit the start is not known, and the bounds'
+    # inverse made NaN of it, which the render refused as a NaN the user never set
+    for x in (3.0, 0.0, jnp.nan):
+        with pytest.raises(eqx.EquinoxRuntimeError,
+                           match="initial value of 'p' must be finite and lie strictly "
+                                 r"inside its bounds \(0.0, 2.0\)"):
+            eqx.filter_jit(lambda v: _from_bounded(v, (0.0, 2.0), "p"))(jnp.asarray(x))
+    np.testing.assert_allclose(eqx.filter_jit(lambda v: _from_bounded(v, (0.0, 2.0), "p"))(
+        jnp.asarray(1.0)), 0.0, atol=1e-15)
+
+
+@pytest.mark.slow
+def test_a_parameter_without_effect_is_refused_under_jit_too():
+    # found by a review: the refusal ran only where the fitted values were known, so a
+    # jitted (or vmapped) fit returned the start without an error
+    vol = vs.data.phantom("shells", shape=8).astype(jnp.float64)
+    scene = vs.Scene(volume=vol, transfer=vs.transfer.preset("shells"), step=1.0,
+                     composition="importance", importance=vs.Importance(intensity=1.0))
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(4, 4))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="does not depend on 'importance.darkening'"):
+        eqx.filter_jit(lambda t: vs.fit(scene, cam, t, params={"importance.darkening": (0.0, 10.0)},
+                                        max_steps=3).values)(vs.render(scene, cam))
+
+
 def test_the_fit_refuses_to_be_differentiated_through_its_data():
     alpha = jnp.zeros((4, 4, 4)).at[1:3, 1:3, 1:3].set(0.5)
 

@@ -521,3 +521,28 @@ def test_background_importance_no_background_and_weight_off():
     for g0 in (0.0, 1e-9, -1e-9):
         slope = jax.grad(lambda g: Importance(background=-3.0).background_importance(g))(g0)
         assert float(slope) == -3.0, g0
+
+
+def test_a_python_int_computes_and_compiles_as_a_python_float():
+    # found by a review: an int became a strong float (float64 under x64), which promoted
+    # a float16 or float32 computation, and a Python float then a float32 array of it
+    # compiled focus_weights twice
+    from volshade.importance import _focus_weights
+
+    center = jnp.asarray([3.0, 4.0], jnp.float16)
+    assert focus_weights((4, 4), center=center, radius=2).dtype == jnp.float16
+    assert focus_weights((4, 4), center=center, radius=2.0).dtype == jnp.float16
+    ext = jnp.ones(5, jnp.float32)
+    imp, _ = sample_importance(Importance(extinction=1), extinction=ext)
+    assert imp.dtype == jnp.float32
+    center = jnp.asarray([3.0, 4.0], jnp.float32)
+    focus_weights((8, 8), center=center, radius=2.0, inside=0.5)
+    size = _focus_weights._cache_size()
+    focus_weights((8, 8), center=center, radius=jnp.float32(2.0), inside=jnp.float32(0.5))
+    assert _focus_weights._cache_size() == size
+
+
+def test_a_bool_direction_is_refused():
+    with pytest.raises(TypeError, match="`view` must be a number or numbers, got a bool"):
+        sample_importance(Importance(silhouette=1.0), normal=jnp.ones((4, 3)),
+                          view=(True, False, False), gradient_magnitude=jnp.ones(4) / 2)

@@ -446,6 +446,9 @@ def test_half_precision_density_keeps_the_colours_given(dtype):
                    dict(colors=colors, ambient=(1.003, 1.0, 1.0))):
         with pytest.raises(ValueError, match="must lie in"):
             obscurance(vol, directions=DIRS12, d_max=4.0, **kwargs)
+    # a bool is no colour (found by a review: it passed as 0 or 1)
+    with pytest.raises(TypeError, match="`ambient` must be a number or numbers, got a bool"):
+        obscurance(vol, directions=DIRS12, d_max=4.0, colors=colors, ambient=(True, 1.0, 1.0))
 
 
 @pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])

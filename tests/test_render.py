@@ -662,3 +662,30 @@ def test_an_eager_render_compiles_once_and_still_refuses_bad_values_at_once():
     same = eqx.tree_at(lambda c: c.target, moved, moved.eye)
     with pytest.raises(ValueError, match="`eye` and `target` must differ"):
         vs.render(scene, same)
+
+
+@pytest.mark.parametrize("box_mm, dtype", [(41.0, jnp.float32), (49.0, jnp.float64)])
+def test_an_opaque_sample_keeps_the_identity_slope_whatever_the_box(box_mm, dtype):
+    # found by a review: a whole segment's ratio step / step0 was formed as
+    # (step / scale) * scale / step0, which rounds 1 to 1 - ulp for these boxes, and at
+    # opacity 1 the correction's slope for a ratio below 1 is 0: the gradient vanished
+    tf = preset("shells")
+    tf = eqx.tree_at(lambda t: t.opacities, tf, tf.opacities.at[7].set(1.0).at[8].set(1.0))
+    cam = Camera.orbit(azimuth=30, elevation=20, distance=1.8, image_shape=(8, 8))
+    weights = jax.random.normal(jax.random.PRNGKey(0), (8, 8, 4), jnp.float64)
+    vol = vs.data.phantom("shells", shape=14)
+
+    def loss(opacity, vol, spacing):
+        t = eqx.tree_at(lambda t: t.opacities, tf, tf.opacities.at[8].set(opacity))
+        scene = vs.Scene(volume=vol, transfer=t, spacing=spacing, step=1.0)
+        return jnp.sum(vs.render(scene, cam) * weights)
+
+    spacing = box_mm / 14
+    got = jax.grad(loss)(jnp.asarray(1.0, dtype), vol.astype(dtype), spacing)
+    x64 = vol.astype(jnp.float64)
+    h = 1e-6                                                  # from below, into [0, 1]
+    one_sided = (3 * loss(1.0, x64, spacing) - 4 * loss(1.0 - h, x64, spacing)
+                 + loss(1.0 - 2 * h, x64, spacing)) / (2 * h)
+    assert abs(float(one_sided)) > 1e-3
+    np.testing.assert_allclose(float(got), float(one_sided), rtol=1e-3 if dtype == jnp.float32
+                               else 1e-6)

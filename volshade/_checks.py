@@ -34,7 +34,7 @@ def as_float_array(x: Any, name: str, where: str) -> Array:
     if jnp.issubdtype(arr.dtype, jnp.floating):
         return arr
     if jnp.issubdtype(arr.dtype, jnp.integer) or arr.dtype == jnp.bool_:
-        return arr.astype(jnp.result_type(float))
+        return _default_float(arr)
     raise TypeError(
         f"{where}: `{name}` must have a real floating or integer dtype, got {arr.dtype}; "
         f"convert it with `.astype(jnp.float32)`."
@@ -84,8 +84,18 @@ def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
         raise TypeError(f"{where}: `{name}` must be a real number or an array of them, "
                         f"got {x!r:.80} of dtype {arr.dtype}.")
     if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
+        arr = _default_float(arr)
     return arr
+
+
+def _default_float(arr: Array) -> Array:
+    """An integer (or bool) array in the default float dtype. A Python int (a weakly typed
+    array) stays weakly typed, as a Python float does: ``radius=2`` then computes and
+    compiles as ``radius=2.0`` (a strong float64 under x64 promoted a float32 volume's
+    result to float64; a strong float32 compiled again beside a later ``2.0``)."""
+    if getattr(arr, "weak_type", False):
+        return arr + 0.0
+    return arr.astype(jnp.result_type(float))
 
 
 def strongly_typed(tree: Any, dtype: Any) -> Any:

@@ -350,12 +350,17 @@ def _clip(clip: Clip, where: str) -> Clip:
     if not isinstance(clip, Clip):
         raise TypeError(f"{where}: `clip` must be a volshade clip shape (SphereClip, BoxClip, "
                         f"TorusClip or HalfSpaceClip), got {type(clip).__name__}.")
+    if not any(eqx.is_inexact_array(x) for x in jax.tree_util.tree_leaves(clip)):
+        return clip  # every leaf replaced by a non-float (eqx.tree_at): _checked names it
+    return _checks.strongly_typed(clip, _clip_dtype(clip))
+
+
+def _clip_dtype(clip: Clip):
+    """The dtype ``clip`` computes in: its floating leaves', float32 at least (a
+    Python-number size beside float16 leaves would otherwise be rounded to float16
+    before its check and its use)."""
     leaves = [x for x in jax.tree_util.tree_leaves(clip) if eqx.is_inexact_array(x)]
-    if not leaves:  # every leaf replaced by a non-float (eqx.tree_at): _checked names it
-        return clip
-    # float32 at least, as the clip computes: a Python-number size beside float16 leaves
-    # would otherwise be rounded to float16 before its check and its use
-    return _checks.strongly_typed(clip, jnp.result_type(*leaves, jnp.float32))
+    return jnp.result_type(*leaves, jnp.float32)
 
 
 def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
@@ -413,7 +418,8 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
 def _affected_mask(shape, clip, radius, where: str) -> Array:
     """:func:`affected_mask`, its errors naming ``where``."""
     clip = _clip(clip, where)
-    radius = _checks.scalar(radius, "radius", where)
+    # a Python number compiles as an array of the dtype it is compared in
+    radius = _checks.strongly_typed(_checks.scalar(radius, "radius", where), _clip_dtype(clip))
     radius = _checks.refuse(radius, [(_checks.not_positive(radius),
                                       "`radius` must be a finite number > 0 (voxels).")], where)
     return _compiled_reach(_shape_of(shape, where), _checked(clip), radius)

@@ -30,7 +30,10 @@ still gets its step. The loss is not convex in most parameters: from a start far
 a fit can end in a local minimum, or on a bound, where the bijection's slope vanishes
 (an LAO radius fitted from 11.5 in (1.5, 12) towards 5, beside the diffuse, ended at
 12), and it reports success there. Compare ``Fit.values`` with the bounds, and start
-nearer.
+nearer. Importance weights should not start at exactly 0, their default, where every
+importance ties and the gradient is not a one-sided derivative (see
+:class:`volshade.Importance`); opacities of importance-aware compositing not at 0
+(see :func:`volshade.composite`).
 
 Derivatives: the render is differentiated in reverse mode (LAO's gradient is a
 custom VJP with checkpointing, which has no forward mode), and the residuals get a
@@ -278,6 +281,13 @@ def _from_bounded(x: Array, bounds: Bounds, path: str) -> Array:
                          f"inside (e.g. move opacities of exactly 0 or 1 to 1e-3 or "
                          f"1 - 1e-3 with `eqx.tree_at`); widen the bounds only where the "
                          f"scene accepts the values beyond them.")
+    if known is None:  # traced (fit under jax.vmap or jit): refused at run time
+        bad = ~jnp.all(jnp.isfinite(x))
+        bad = bad if low is None else bad | jnp.any(x <= low)
+        bad = bad if high is None else bad | jnp.any(x >= high)
+        x = _checks.refuse(x, [(bad, f"the initial value of {path!r} must be finite and lie "
+                                     f"strictly inside its bounds ({low}, {high}). Start "
+                                     f"from values inside.")], _WHERE)
     if low is not None and high is not None:
         u = jnp.log(x - low) - jnp.log(high - x)  # accurate near either bound
     elif low is not None:
@@ -286,11 +296,9 @@ def _from_bounded(x: Array, bounds: Bounds, path: str) -> Array:
         u = _softplus_inverse(high - x)
     else:
         return x
-    known = _checks.concrete(u)
-    if known is not None and not np.all(np.isfinite(known)):
-        raise ValueError(f"{_WHERE}: the initial value of {path!r} is too close to its "
-                         f"bounds ({low}, {high}) for {x.dtype}; start further inside.")
-    return u
+    return _checks.refuse(u, [(~jnp.all(jnp.isfinite(u)), f"the initial value of {path!r} is "
+                               f"too close to its bounds ({low}, {high}) for {x.dtype}; "
+                               f"start further inside.")], _WHERE)
 
 
 def _parameters(scene: Scene, params: Any
@@ -682,7 +690,10 @@ def fit(
     # on; the test (a reverse pass) is compiled apart, for such fits alone: in the solve's
     # program it made every fit compile longer (the first call of the example below on a
     # 2-core CPU: 10.2 s with it, 9.0 s without)
-    if any(np.array_equal(ui, u0_i) for ui, u0_i in zip(u, u0, strict=True)):
+    # (under jax.vmap or jit the values are not known: the test runs; np.array_equal of a
+    # tracer is False, and skipped it)
+    if _checks.traced(u) or any(np.array_equal(ui, u0_i)
+                                for ui, u0_i in zip(u, u0, strict=True)):
         u = _refuse_without_effect(problem, u, u0, paths)
     fitted, values = problem.place(u)
     return Fit(scene=fitted, values=dict(zip(paths, values, strict=True)), loss=loss,

@@ -57,6 +57,14 @@ class Importance(eqx.Module):
     so in float32 weights whose product passes about $10^{38}$ (e.g. both $10^{30}$)
     overflow to infinity and the image degrades without an error: use float64 there.
 
+    Where every sample of a ray has the same importance (all measure weights exactly 0,
+    the defaults, or a focus weight of 0), every step is a tie $K_i = I_s$, which has
+    no derivative; each is taken as behind (:func:`volshade.composition.importance_step`),
+    so the gradient w.r.t. a weight there is the sum of the derivatives from above and
+    below, not either one (e.g. -1.19 where they are +0.015 and -1.20: a minimum that
+    the gradient says to leave upwards). Start a fit of these weights off 0 (e.g. at
+    $10^{-3}$), where the derivative is exact.
+
     Attributes:
         global_weight: $W_{global}$ (sec. IV-B); per-ray weights for focus plus
             context (sec. IV-D) can override it in :func:`sample_importance`.
@@ -203,7 +211,8 @@ def _feature(value: ArrayLike, name: str, where: str, *, check: bool = True) -> 
     """A measure's input as a floating array, vectors checked to be ``(..., 3)``; with
     ``check``, refused at run time where it is not finite or outside its domain (the
     measures assume it: they would clip it, or give a wrong value without an error)."""
-    v = _checks.as_float_array(value, name, where)
+    # a bool direction is no direction (data such as a mask may be bool)
+    v = (_checks.numbers if name in _VECTORS else _checks.as_float_array)(value, name, where)
     if name in _VECTORS and (v.ndim < 1 or v.shape[-1] != 3):
         raise ValueError(f"{where}: `{name}` must be (..., 3) in (d, h, w) order, "
                          f"got {v.shape}.")
@@ -396,6 +405,12 @@ def sample_importance(
         global_weight = _checks.finite(
             _checks.as_float_array(global_weight, "global_weight", where), "global_weight",
             where)
+    if scalars or vectors:
+        # a Python number (weakly typed) compiles as an array of the dtype it computes in
+        work = jnp.promote_types(jnp.result_type(*scalars.values(), *vectors.values()),
+                                 jnp.float32)
+        params, scalars, vectors, global_weight = _checks.strongly_typed(
+            (params, scalars, vectors, global_weight), work)
     return _compiled_sample_importance(params, scalars, vectors, global_weight)
 
 
@@ -586,6 +601,8 @@ def focus_weights(
     radius = _checks.refuse(radius.astype(jnp.promote_types(dtype, jnp.float32)),
                             [(_checks.not_positive(radius),
                               "`radius` must be a finite number > 0 pixels.")], where)
+    # a Python number (weakly typed) compiles as an array of the dtype it computes in
+    center, inside, outside = _checks.strongly_typed((center, inside, outside), dtype)
     return _focus_weights(fn, (h, w), jnp.dtype(dtype), center, radius, inside, outside)
 
 

@@ -610,7 +610,7 @@ def obscurance(
         colors = _checks.finite(colors, "colors", where, unit_range=True,
                                 hint=reflectances).astype(work)
         ambient = (1.0, 1.0, 1.0) if ambient is None else ambient
-        ambient = _checks.as_float_array(ambient, "ambient", where)
+        ambient = _checks.numbers(ambient, "ambient", where)
         if ambient.shape != (3,):
             raise ValueError(f"{where}: `ambient` must be an RGB triple, shape (3,), got "
                              f"{ambient.shape}.")

@@ -306,6 +306,7 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
     length = jnp.where(hit, t_far - t_near, 0)
     t_near = jnp.where(hit, t_near, 0)  # a missed ray may carry t = +-max: keep positions finite
     dt = jnp.asarray(shared.step / scale, dtype)
+    full_ratio = jnp.asarray(shared.step / transfer.step0, dtype)
     to_index = jnp.asarray(scale / np.asarray(spacing), dtype)
     ambient, opacity_scale, gradient = shared.ambient, shared.opacity_scale, shared.gradient
     eye_dir = -directions
@@ -343,7 +344,11 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
             value = _trilinear(volume, index, "nearest") if measured else None
         if opacity_scale is not None:
             alpha0 = jnp.minimum(alpha0 * _trilinear(opacity_scale, index, "nearest"), 1)
-        alpha = correct_opacity(alpha0, seg * scale / transfer.step0)
+        # a whole segment's ratio as step / step0, not (step / scale) * scale / step0: that
+        # rounds 1 to 1 - ulp for some boxes (41 mm in float32), and at opacity 1 a ratio
+        # below 1 has the slope 0, not the identity's 1 (correct_opacity)
+        ratio = jnp.where(seg < dt, seg * scale / transfer.step0, full_ratio)
+        alpha = correct_opacity(alpha0, ratio)
         amb = jnp.ones((*batch, 1), dtype) if ambient is None else \
             _trilinear(ambient, index, "nearest").reshape(*batch, -1)
         grad = None if gradient is None else _trilinear(gradient, index, "nearest")

@@ -131,10 +131,14 @@ def saliency(
         raise ValueError(f"{where}: `obscurance` must have at least one channel, got "
                          f"shape {arr.shape}.")
     _checks.check_ndim(arr, arr.ndim, "obscurance", where, "(D, H, W) or (D, H, W, C)")
-    channels = [arr] if arr.ndim == 3 else [arr[..., c] for c in range(arr.shape[-1])]
+    # in float32 at least: a half-precision gradient overflows where the voxels are
+    # small (float16 at 4 nm: inf / inf in the scaling), though the result does not
+    # depend on the scale
+    work = _checks.at_least_float32(arr)
+    channels = [work] if work.ndim == 3 else [work[..., c] for c in range(work.shape[-1])]
     grads = [regression_gradient(ch, spacing=spacing, size=size, weighting=weighting)
              for ch in channels]
-    return _scaled_magnitude(grads)
+    return _scaled_magnitude(grads).astype(arr.dtype)
 
 
 @jax.jit

@@ -212,12 +212,15 @@ class TransferFunction(eqx.Module):
                 ) -> Float[Array, "*shape"]:
         r"""Opacity of each value; with ``step`` (mm), corrected to that segment length.
 
-        Integer and bool volumes are classified as their values (as floats). The
-        correction $1 - (1 - \alpha_0)^{r}$, $r = $ ``step / step0``, has an infinite
-        slope at $\alpha_0 = 1$ for $r < 1$; its gradient there is returned as 0 (so
-        that it stays finite): an opacity of exactly 1 sampled at a step shorter than
-        ``step0`` (as :func:`volshade.render` does for ``step < step0``) gets no
-        gradient. Keep fitted opacities below 1 to fit them.
+        Integer and bool volumes are classified as their values (as floats, of the
+        default float dtype); half precision is classified and returned in float32 (so
+        are :meth:`color`, :meth:`extinction` and the call): its few digits would round
+        the control points. The correction $1 - (1 - \alpha_0)^{r}$,
+        $r = $ ``step / step0``, has an infinite slope at $\alpha_0 = 1$ for $r < 1$;
+        its gradient there is returned as 0 (so that it stays finite): an opacity of
+        exactly 1 sampled at a step shorter than ``step0`` (as :func:`volshade.render`
+        does for ``step < step0``) gets no gradient. Keep fitted opacities below 1 to
+        fit them.
 
         Raises:
             ValueError: NaN or inf in ``volume`` (interpolation would clamp an
