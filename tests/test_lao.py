@@ -572,3 +572,25 @@ def test_bad_values_raise_under_jit(samples):
     g = jax.jit(lambda w: lao(alpha, directions=dirs, radius=3.0, samples=samples, weights=w))
     with pytest.raises(Exception, match="`weights` must be finite, >= 0"):
         jax.block_until_ready(g(jnp.asarray([1.0, -1.0, 0.0, 0.0])))
+
+
+def test_a_python_number_radius_pads_by_the_radius_under_jit_too():
+    # found by a review: under jit the radius converted to the march's dtype is a tracer,
+    # so the padding (and contextual_ao's brick windows) fell back to the whole volume:
+    # contextual_ao under jit ran slower than a full recompute
+    prepare = sys.modules["volshade.lao"]._prepare
+    pads = []
+
+    def f(alpha):
+        pads.append(prepare(alpha, directions=12, radius=4.0, offset=1.0, samples=8,
+                            weights=None, opacity_correction=False, brick_size=8,
+                            max_radius=None, where="x").pad)
+        return alpha
+
+    alpha = jnp.zeros((20, 24, 20))
+    f(alpha)
+    jax.jit(f)(alpha)
+    assert pads == [(5, 5, 5), (5, 5, 5)]
+    # and known values are refused at once, as they are eagerly
+    with pytest.raises(ValueError, match="`radius` .* must be > `offset`"):
+        jax.jit(lambda a: lao(a, directions=12, radius=1.0, offset=1.0, samples=4))(alpha)

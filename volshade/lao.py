@@ -719,7 +719,10 @@ def _prepare(alpha, *, directions, radius, offset, samples, weights, opacity_cor
     r_given, a_given = _concrete(radius), _concrete(offset)
     radius = _checks.scalar(radius, "radius", where, unit="voxels", dtype=dtype)
     offset = _checks.scalar(offset, "offset", where, unit="voxels", dtype=dtype)
-    r_value, a_value = _checks.concrete(radius), _checks.concrete(offset)  # in `dtype`
+    # in `dtype`, rounded on the host: under jit the converted arrays are tracers even
+    # for a Python number, which left the padding (`bound`) the whole volume
+    r_value, a_value = (None if v is None else np.asarray(v).astype(dtype)
+                        for v in (r_given, a_given))
     working = f"in {jnp.dtype(dtype).name}, the dtype of the march"
     if a_value is not None and not (np.isfinite(a_value) and a_value >= 0):
         raise ValueError(f"{where}: `offset` must be a finite number >= 0 (voxels) {working}, "
