@@ -1,6 +1,7 @@
 """Tests of volshade.importance: importance measures and focus-plus-context weights."""
 
 import dataclasses
+import sys
 
 import equinox as eqx
 import jax
@@ -532,9 +533,13 @@ def test_a_python_int_computes_and_compiles_as_a_python_float():
     center = jnp.asarray([3.0, 4.0], jnp.float16)
     assert focus_weights((4, 4), center=center, radius=2).dtype == jnp.float16
     assert focus_weights((4, 4), center=center, radius=2.0).dtype == jnp.float16
+    compiled = sys.modules["volshade.importance"]._compiled_sample_importance
     ext = jnp.ones(5, jnp.float32)
-    imp, _ = sample_importance(Importance(extinction=1), extinction=ext)
-    assert imp.dtype == jnp.float32
+    first, _ = sample_importance(Importance(extinction=1), extinction=ext)
+    size = compiled._cached._cache_size()
+    second, _ = sample_importance(Importance(extinction=jnp.float32(1.0)), extinction=ext)
+    assert compiled._cached._cache_size() == size
+    assert first.dtype == second.dtype == jnp.float32
     center = jnp.asarray([3.0, 4.0], jnp.float32)
     focus_weights((8, 8), center=center, radius=2.0, inside=0.5)
     size = _focus_weights._cache_size()

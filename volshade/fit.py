@@ -668,8 +668,8 @@ def fit(
                         f"(e.g. optx.LevenbergMarquardt) or minimiser (e.g. optx.BFGS), "
                         f"got {type(solver).__name__}.")
     paths = tuple(named)
-    # strongly typed, as constructors store them: jit caches a weakly typed start
-    # (from a Python float) apart, and would compile the solver again
+    # strongly typed: jit caches a weakly typed start (a Python number, which several
+    # constructors keep weakly typed) apart, and would compile the solver again
     initial = []
     for leaf, path in zip(leaves, named, strict=True):
         x = _checks.float_leaf(leaf, path, _WHERE)
@@ -690,8 +690,9 @@ def fit(
     # on; the test (a reverse pass) is compiled apart, for such fits alone: in the solve's
     # program it made every fit compile longer (the first call of the example below on a
     # 2-core CPU: 10.2 s with it, 9.0 s without)
-    # (under jax.vmap or jit the values are not known: the test runs; np.array_equal of a
-    # tracer is False, and skipped it)
+    # (under jax.vmap or jit the values are not known: the test runs, at the price of
+    # compiling its reverse pass too, which made a vmapped fit of an 8^3 scene compile
+    # in 17-27 s instead of 13-14; np.array_equal of a tracer is False, and skipped it)
     if _checks.traced(u) or any(np.array_equal(ui, u0_i)
                                 for ui, u0_i in zip(u, u0, strict=True)):
         u = _refuse_without_effect(problem, u, u0, paths)
