@@ -575,3 +575,18 @@ def test_errors():
         with pytest.raises(ValueError, match=f"`{name}` contains NaN or inf"):
             obscurance_shading(jnp.ones((2, 3)), jnp.asarray(light), jnp.asarray(view),
                                jnp.ones(2))
+
+
+def test_colour_bleeding_with_the_ao_rho_is_the_grey_obscurance_times_the_ambient():
+    # rho = 0 for every occluder within reach: the occluders' colours drop out (a review
+    # found the colour-bleeding render pixel-identical to the grey one, as eq. 3 says)
+    rng = np.random.default_rng(40)
+    density = jnp.asarray(rng.random((10, 10, 10)) > 0.7, jnp.float64)
+    colors = jnp.asarray(rng.random((10, 10, 10, 3)))
+    ambient = jnp.asarray([0.9, 0.5, 0.2])
+    rgb = obscurance(density, directions=DIRS12, d_max=4.0, rho="ao", colors=colors,
+                     ambient=ambient)
+    grey = obscurance(density, directions=DIRS12, d_max=4.0, rho="ao")
+    assert 0 < float(jnp.mean(grey)) < 1  # partly occluded: the test compares something
+    np.testing.assert_allclose(np.asarray(rgb), np.asarray(grey)[..., None] * np.asarray(ambient),
+                               atol=1e-14)

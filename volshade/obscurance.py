@@ -552,7 +552,9 @@ def obscurance(
             leaves of a callable pytree (an equinox Module with a parameter) are
             traced, so they get gradients.
         colors: optional ``(D, H, W, 3)`` diffuse colours $R$ in $[0, 1]$ (e.g. the
-            transfer function's colour of each voxel); turns on colour bleeding.
+            transfer function's colour of each voxel); turns on colour bleeding. With
+            ``rho="ao"`` (0 for every occluder within reach) the occluders' colours drop
+            out: $W$ is the grey obscurance times ``ambient``.
         ambient: ``(3,)`` colour in $[0, 1]$ of unoccluded directions, for colour
             bleeding only (``None``: white; the average reflectivity in Méndez et al.).
 
