@@ -407,11 +407,16 @@ def sample_importance(
             where)
     if scalars or vectors:
         # a Python number (weakly typed) compiles as an array of the dtype it computes in
-        work = jnp.promote_types(jnp.result_type(*scalars.values(), *vectors.values()),
-                                 jnp.float32)
         params, scalars, vectors, global_weight = _checks.strongly_typed(
-            (params, scalars, vectors, global_weight), work)
+            (params, scalars, vectors, global_weight), _measure_dtype(scalars, vectors))
     return _compiled_sample_importance(params, scalars, vectors, global_weight)
+
+
+def _measure_dtype(scalars: dict, vectors: dict):
+    """The dtype the measures are weighted and summed in: the features', float32 at
+    least (a float16 weighted sum overflows: intensity 7e4 is inf)."""
+    return jnp.promote_types(jnp.result_type(*scalars.values(), *vectors.values()),
+                             jnp.float32)
 
 
 def _sample_importance(params, scalars, vectors, global_weight):
@@ -435,9 +440,7 @@ def _sample_importance(params, scalars, vectors, global_weight):
     except ValueError as err:
         raise ValueError(f"{where}: feature shapes {shapes} do not broadcast to one batch shape.") \
             from err
-    # float32 at least: a float16 weighted sum overflows (intensity 7e4 is inf)
-    dtype = jnp.promote_types(jnp.result_type(*scalars.values(), *vectors.values()),
-                              jnp.float32)
+    dtype = _measure_dtype(scalars, vectors)
     scalars = {k: jnp.broadcast_to(v.astype(dtype), batch) for k, v in scalars.items()}
     vectors = {k: jnp.broadcast_to(v.astype(dtype), (*batch, 3)) for k, v in vectors.items()}
     p = {k: jnp.asarray(v).astype(dtype) for k, v in _leaves(params).items()}
@@ -598,11 +601,12 @@ def focus_weights(
     _checks.floating_dtype(dtype, where)
     # in the geometry's dtype (_focus_weights): rounded to a half-precision output dtype,
     # a radius of 1e-8 would become 0
-    radius = _checks.refuse(radius.astype(jnp.promote_types(dtype, jnp.float32)),
-                            [(_checks.not_positive(radius),
-                              "`radius` must be a finite number > 0 pixels.")], where)
+    work = jnp.promote_types(dtype, jnp.float32)  # as _focus_weights computes
+    radius = _checks.refuse(radius.astype(work), [(_checks.not_positive(radius),
+                                                   "`radius` must be a finite number > 0 "
+                                                   "pixels.")], where)
     # a Python number (weakly typed) compiles as an array of the dtype it computes in
-    center, inside, outside = _checks.strongly_typed((center, inside, outside), dtype)
+    center, inside, outside = _checks.strongly_typed((center, inside, outside), work)
     return _focus_weights(fn, (h, w), jnp.dtype(dtype), center, radius, inside, outside)
 
 
