@@ -174,7 +174,8 @@ def _ambient_params(ambient: str, options: dict, voxel: float, smooth: bool) -> 
     return {}
 
 
-def _run_jobs(jobs: list[Job], out: pathlib.Path) -> list[tuple[str, float]]:
+def _run_jobs(jobs: list[Job], out: pathlib.Path
+              ) -> tuple[list[tuple[str, float]], dict[str, np.ndarray]]:
     out.mkdir(parents=True, exist_ok=True)
     timings = []
     rendered = {}
