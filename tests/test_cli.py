@@ -117,7 +117,7 @@ def test_cli_errors(tmp_path, capsys):
     ]:
         assert cli.main(argv) == 2
         err = capsys.readouterr().err
-        assert err.startswith("volshade: error: ") and message in err
+        assert err.startswith("volshade render: error: ") and message in err
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert cli.main(["render", str(tmp_path / "missing.nii.gz"), "--out",
                      str(tmp_path / "x.png")]) == 2
@@ -126,7 +126,7 @@ def test_cli_errors(tmp_path, capsys):
     assert cli.main(["render", "shells", "--out", str(tmp_path / "x.png"), "--size", "8",
                      "--image", "8", "--background", "nan", "0", "0"]) == 2
     err = capsys.readouterr().err
-    assert "volshade: error: volshade.render: `scene.background` contains NaN" in err
+    assert "volshade render: error: volshade.render: `scene.background` contains NaN" in err
     assert "Traceback" not in err and "EQX_ON_ERROR" not in err
 
 
@@ -140,7 +140,7 @@ def test_an_image_past_the_index_range_is_an_error_not_a_traceback(tmp_path):
                            str(tmp_path / "x.png"), "--size", "8", "--image", "3000000000"],
                           capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 2, done.stderr
-    assert "volshade: error: a size is too large to index" in done.stderr
+    assert "volshade render: error: a size is too large to index" in done.stderr
     assert "Traceback" not in done.stderr
 
 
@@ -240,7 +240,7 @@ def test_options_that_do_not_apply_are_refused(tmp_path, capsys):
     ]:
         assert cli.main(["render", *argv, *out]) == 2
         err = capsys.readouterr().err
-        assert err.startswith("volshade: error: ") and message in err, err
+        assert err.startswith("volshade render: error: ") and message in err, err
     # (the checks come before the file is read)
     bogus = tmp_path / "x.nii.gz"
     assert cli.main(["render", str(bogus), *out, "--size", "16"]) == 2

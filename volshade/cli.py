@@ -409,8 +409,11 @@ def _check_message(err: Exception) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args, unknown = _parser().parse_known_args(argv)
-    if unknown:  # with the command's usage and name, not the top-level one's
-        args._commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
+    # errors carry the command's name ("volshade render: error: ..."), as argparse's do
+    command = args._commands[args.command]
+    if unknown:  # with the command's usage, not the top-level one's
+        command.error(f"unrecognized arguments: {' '.join(unknown)}")
+    prefix = f"{command.prog}: error:"
     try:
         for name in ("size", "image", "downsample"):
             if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
@@ -419,20 +422,20 @@ def main(argv: list[str] | None = None) -> int:
             return demo(args.out, args.size, args.image, args.downsample)
         return render_command(args)
     except (ValueError, TypeError, OSError, ImportError) as err:
-        print(f"volshade: error: {err}", file=sys.stderr)
+        print(f"{prefix} {err}", file=sys.stderr)
         return 2
     except eqx.EquinoxRuntimeError as err:  # a run-time check (e.g. NaN in a parameter)
-        print(f"volshade: error: {_check_message(err)}", file=sys.stderr)
+        print(f"{prefix} {_check_message(err)}", file=sys.stderr)
         return 2
     except OverflowError:  # a size past what an index can hold (--image 3000000000)
-        print("volshade: error: a size is too large to index (past 2^31); lower --size or "
+        print(f"{prefix} a size is too large to index (past 2^31); lower --size or "
               "--image, or raise --downsample.", file=sys.stderr)
         return 2
     except (MemoryError, jax.errors.JaxRuntimeError) as err:
         # NumPy's or XLA's allocation; other run-time errors are bugs, with a traceback
         if not isinstance(err, MemoryError) and "RESOURCE_EXHAUSTED" not in str(err):
             raise
-        print("volshade: error: out of memory; lower --size or --image, or raise "
+        print(f"{prefix} out of memory; lower --size or --image, or raise "
               "--downsample (or a render's --step).", file=sys.stderr)
         return 2
 
