@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import volshade as vs
-from benchmarks._timing import time_fn
+from benchmarks._timing import time_fns
 from volshade.cao import affected_fraction
 
 
@@ -60,8 +60,8 @@ def run(quick: bool) -> dict:
         for centre in path:
             centre = jnp.asarray(centre)
             args = (centre, alpha, unclipped)
-            a = time_fn(fast, *args, repeats=repeats)
-            b = time_fn(slow, *args, repeats=repeats)
+            a, b = time_fns({"contextual": fast, "full": slow}, *args,
+                            repeats=repeats).values()
             t_fast.append(a["median_s"])
             t_slow.append(b["median_s"])
             diffs.append(float(jnp.max(jnp.abs(fast(*args) - slow(*args)))))
@@ -78,8 +78,9 @@ def run(quick: bool) -> dict:
         # only its own bricks (a loop over the poses, not a batched lax.cond)
         centres = jnp.asarray(np.stack(path))
         batched = [jax.jit(jax.vmap(f, in_axes=(0, None, None))) for f in (contextual, full)]
-        a, b = (time_fn(f, centres, alpha, unclipped, repeats=repeats)["median_s"]
-                for f in batched)
+        a, b = (t["median_s"] for t in time_fns(
+            {"contextual": batched[0], "full": batched[1]}, centres, alpha, unclipped,
+            repeats=repeats).values())
         diff = float(jnp.max(jnp.abs(batched[0](centres, alpha, unclipped)
                                      - batched[1](centres, alpha, unclipped))))
         rows.append({"case": f"{name}, the path vmapped: full recompute", "median_s": b})

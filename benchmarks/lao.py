@@ -186,7 +186,7 @@ def run(quick: bool) -> dict:
     batched = {b: jax.jit(jax.vmap(lambda a, r, b=b: lao(
         a, directions=dirs, radius=r, offset=1.0, samples=samples, max_radius=8.0,
         brick_size=b), (0, None))) for b in (None, 16)}
-    times = {b: time_fn(fn, batch, r8, repeats=repeats) for b, fn in batched.items()}
+    times = time_fns(batched, batch, r8, repeats=repeats)
     for b, t in times.items():
         rows.append({"case": f"3 sparse volumes vmapped, {'bricks of 16' if b else 'unbricked'}",
                      "median_s": t["median_s"], "first_call_s": t["first_call_s"]})
@@ -195,14 +195,12 @@ def run(quick: bool) -> dict:
     ratios["bricked_vmapped_max_abs_diff_sparse"] = float(
         jnp.max(jnp.abs(batched[None](batch, r8) - batched[16](batch, r8))))
 
+    fns = {brick: jax.jit(jax.value_and_grad(lambda a, r, b=brick: jnp.sum(lao(
+        a, directions=dirs, radius=r, offset=1.0, samples=samples, max_radius=8.0,
+        brick_size=b) ** 2), (0, 1))) for brick in (None, 16)}
     grads = {}
-    for brick in (None, 16):
-        loss = lambda a, r, b=brick: jnp.sum(lao(  # noqa: E731
-            a, directions=dirs, radius=r, offset=1.0, samples=samples, max_radius=8.0,
-            brick_size=b) ** 2)
-        fn = jax.jit(jax.value_and_grad(loss, (0, 1)))
-        t = time_fn(fn, a, r8, repeats=repeats)
-        grads[brick] = (t["median_s"], fn(a, r8)[1])
+    for brick, t in time_fns(fns, a, r8, repeats=repeats).items():
+        grads[brick] = (t["median_s"], fns[brick](a, r8)[1])
         rows.append({"case": f"sparse forward+grad {'bricks of 16' if brick else 'unbricked'}",
                      "median_s": t["median_s"], "first_call_s": t["first_call_s"]})
     ratios["bricked_speedup_sparse_forward_plus_grad"] = grads[None][0] / grads[16][0]
