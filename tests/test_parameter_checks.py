@@ -234,6 +234,15 @@ def test_nested_lists_become_arrays():
      "volshade.Scene: `background` must be a real number"),
     (lambda: vs.LocalAmbientOcclusion("3"), TypeError, "`radius` must be a real number"),
     (lambda: vs.IntervalFeature(0.2, "1"), TypeError, "IntervalFeature: `high`"),
+    # found by a review: an array of ends broadcast over the volume's last axis (under jit
+    # silently; eagerly NumPy's "inhomogeneous shape")
+    (lambda: eqx.filter_jit(lambda f: f.opacity(VOL, TF))(vs.IntervalFeature(
+        jnp.asarray([0.0, 0.5]), jnp.ones(2))), ValueError,
+     r"IntervalFeature.opacity: the interval's `low` must have shape \(\) where it is used, "
+     r"got \(2,\)"),
+    (lambda: vs.feature_ao(VOL, features=[vs.IntervalFeature(0.2, jnp.asarray([0.6, 0.9]))],
+                           base=TF, directions=4, radius=2.0), ValueError,
+     r"feature_ao: features\[0\], the interval's `high` must have shape \(\)"),
     (lambda: vs.Camera.orbit(fov="30"), TypeError, "Camera.orbit: `fov`"),
     (lambda: vs.SphereClip(center=(1.0, 2.0, None), radius=2.0), TypeError, "`center`"),
     (lambda: vs.Camera.orbit(target=(0.0, 0.0)), ValueError,

@@ -273,7 +273,8 @@ class IntervalFeature(eqx.Module):
         TypeError: a non-numeric (or bool) ``low`` or ``high``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``low >= high``
             or an end that is not finite; traced values are checked where the feature
-            is used (:meth:`opacity`, :func:`feature_opacities`).
+            is used (:meth:`opacity`, :func:`feature_opacities`), and so are the ends'
+            shapes (scalars there; a batch of features is for ``jax.vmap``).
     """
 
     low: Float[Array, ""]
@@ -397,7 +398,15 @@ def _check_interval_meets(feature: "IntervalFeature", base: TransferFunction, wh
     """Refuse, when known, an interval that lies outside ``base``'s control points: the
     volume's values lie within them (``base.opacity`` refuses others), so it would select
     no voxel, and its feature's AO would be 1 everywhere without a word (an interval
-    written in raw intensities, e.g. (40, 100), for a normalised volume)."""
+    written in raw intensities, e.g. (40, 100), for a normalised volume). Its ends must
+    be scalars here: an array of them would broadcast over the volume's last axis, each
+    column of voxels selected by another interval (a batch of features is for
+    ``jax.vmap``, as a batch of clips)."""
+    for name in ("low", "high"):
+        if jnp.shape(getattr(feature, name)) != ():
+            raise ValueError(f"{where}: {what}'s `{name}` must have shape () where it is "
+                             f"used, got {jnp.shape(getattr(feature, name))}; for several "
+                             f"intervals make several features, or jax.vmap over them.")
     known = _checks.concrete((feature.low, feature.high, base.points[0], base.points[-1]))
     if known is None:
         return
