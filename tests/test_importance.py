@@ -343,6 +343,26 @@ def test_sample_importance_errors():
         with pytest.raises(ValueError, match=f"Importance: `{field}` must be finite"):
             Importance(**{field: value})
     assert float(Importance(background=-jnp.inf).background) == -np.inf  # no background
+    # found by a review: what no measure reads was dropped without a word (vectors without
+    # a gradient magnitude gave importance 0 under silhouette and lighting weights of 5)
+    vectors = dict(normal=jnp.ones((2, 3)), view=jnp.ones(3), light=jnp.ones(3))
+    with pytest.raises(ValueError, match=r"`normal`, `view`, `light` would be unread: .* "
+                                         r"also need `gradient_magnitude`"):
+        sample_importance(Importance(silhouette=5.0, lighting=5.0), **vectors)
+    with pytest.raises(ValueError, match=r"`light` would be unread: .* also need `normal`, "
+                                         r"`view`, `gradient_magnitude`"):
+        sample_importance(Importance(), intensity=jnp.ones(2), light=jnp.ones(3))
+    for weight, given, missing in (("silhouette", dict(gradient_magnitude=jnp.ones(2)),
+                                    "`normal`, `view`"),
+                                   ("extinction", dict(intensity=jnp.ones(2)), "`extinction`"),
+                                   ("unocclusion", dict(intensity=jnp.ones(2)),
+                                    "`optical_depth`")):
+        with pytest.raises(ValueError, match=rf"`params.{weight}` is 2, but its measure needs "
+                                             rf"{missing}, not given"):
+            sample_importance(Importance(**{weight: 2.0}), **given)
+    # a traced weight cannot be known to be non-zero: its measure is left out (0)
+    np.testing.assert_array_equal(jax.jit(lambda w: sample_importance(
+        Importance(intensity=1.0, lighting=w), intensity=jnp.ones(2))[0])(2.0), [1.0, 1.0])
     weighted = jax.jit(lambda w: sample_importance(Importance(intensity=w),
                                                    intensity=jnp.ones(2))[0])
     np.testing.assert_allclose(weighted(2.0), [2.0, 2.0])

@@ -353,10 +353,11 @@ def sample_importance(
     that the darkening fades with the focus weights as the importance does
     (sec. IV-D: "a smooth transition ... by varying the per-ray-global weight").
 
-    A measure whose inputs are not given is left out (it contributes 0):
-    silhouetteness needs ``normal``, ``view`` and ``gradient_magnitude``; lighting
-    needs ``normal``, ``view`` and ``gradient_magnitude`` (``light`` defaults to
-    ``view``, a headlight).
+    A measure whose inputs are not given is left out (it contributes 0), if its
+    weight is 0 or traced; a known non-zero weight without its inputs is refused, as are
+    vectors that no measure would read. Silhouetteness needs ``normal``, ``view`` and
+    ``gradient_magnitude``; lighting needs ``normal``, ``view`` and
+    ``gradient_magnitude`` (``light`` defaults to ``view``, a headlight).
 
     Args:
         params: the :class:`Importance` weights.
@@ -381,7 +382,8 @@ def sample_importance(
 
     Raises:
         ValueError: no features given, shapes that do not broadcast, vectors whose last
-            axis is not 3.
+            axis is not 3; vectors without the other inputs of silhouetteness and
+            lighting; a known non-zero weight whose measure's inputs are not given.
         TypeError: non-numeric features.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): NaN or inf in a
             feature or a weight, a negative ``extinction`` or ``optical_depth``, a
@@ -401,6 +403,7 @@ def sample_importance(
     params = _checks.refuse(params.checked(), params._non_finite(), where)
     scalars, vectors = ({k: _feature(v, k, where) for k, v in features.items() if v is not None}
                         for features in (scalars, vectors))
+    _refuse_unread(params, {*scalars, *vectors}, where)
     if global_weight is not None:
         global_weight = _checks.finite(
             _checks.as_float_array(global_weight, "global_weight", where), "global_weight",
@@ -410,6 +413,34 @@ def sample_importance(
         params, scalars, vectors, global_weight = _checks.strongly_typed(
             (params, scalars, vectors, global_weight), _measure_dtype(scalars, vectors))
     return _compiled_sample_importance(params, scalars, vectors, global_weight)
+
+
+# the features each measure reads
+_NEEDS = {"intensity": ("intensity",), "extinction": ("extinction",),
+          "gradient": ("gradient_magnitude",), "unocclusion": ("optical_depth",),
+          "silhouette": ("normal", "view", "gradient_magnitude"),
+          "lighting": ("normal", "view", "gradient_magnitude")}
+
+
+def _refuse_unread(params: Importance, given: set[str], where: str) -> None:
+    """Refuse what would be dropped without a word: vectors that no measure reads
+    (silhouetteness and lighting need ``normal``, ``view`` and ``gradient_magnitude``
+    together), and a known non-zero weight whose measure lacks a feature."""
+    shape_measures = set(_NEEDS["silhouette"])
+    unread = [k for k in _VECTORS if k in given] if not shape_measures <= given else []
+    if unread:
+        missing = ", ".join(f"`{k}`" for k in _NEEDS["silhouette"] if k not in given)
+        raise ValueError(f"{where}: {', '.join(f'`{k}`' for k in unread)} would be unread: "
+                         f"only silhouetteness and lighting read the vectors, and they also "
+                         f"need {missing}. Give it, or leave the vectors out.")
+    for weight, needs in _NEEDS.items():
+        value = _checks.concrete(getattr(params, weight))
+        missing = [k for k in needs if k not in given]
+        if missing and value is not None and value != 0:
+            raise ValueError(f"{where}: `params.{weight}` is {float(value):g}, but its "
+                             f"measure needs {', '.join(f'`{k}`' for k in missing)}, not "
+                             f"given; give {'it' if len(missing) == 1 else 'them'}, or set "
+                             f"the weight to 0.")
 
 
 def _measure_dtype(scalars: dict, vectors: dict):
