@@ -26,6 +26,7 @@ the gradient volume, the ambient and opacity-scale volumes) followed by
 """
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import equinox as eqx
@@ -267,23 +268,71 @@ def march_view(shared: Medium, camera: Camera, focus: Array | None = None
     """The per-view part of :func:`march`: ``camera``'s rays through ``shared`` (what
     :func:`medium` returns), with optional ``(H, W)`` ``focus`` weights; returns the
     ``(H, W, 4)`` image."""
-    where = "volshade.render"
     if not isinstance(camera, Camera):
-        raise TypeError(f"{where}: `camera` must be a volshade.Camera, got "
+        raise TypeError(f"volshade.render: `camera` must be a volshade.Camera, got "
                         f"{type(camera).__name__}.")
-    dtype = shared.volume.dtype
-    if focus is not None:
-        focus = _checks.finite(_checks.as_float_array(focus, "focus", where).astype(dtype),
-                               "focus", where)
-        if focus.shape != camera.image_shape:
-            raise ValueError(f"{where}: `focus` must have the camera's image shape "
-                             f"{camera.image_shape}, got {focus.shape}.")
-        if shared.importance is None:
-            raise ValueError(f"{where}: `focus` weights need composition='importance'.")
+    focus = _checked_focus(shared, camera.image_shape, focus)
     # known degenerate values are refused now, with a ValueError; traced ones by the
     # compiled march, at run time
     _checks.refuse(camera, camera._degenerate(), "volshade.Camera", traced=False)
     return _march_view(shared, camera, focus)
+
+
+def march_views(shared: Medium, cameras: Sequence[Camera], focus: Array | None = None
+                ) -> Float[Array, "N H W 4"]:
+    """:func:`march_view` of each of ``cameras``, which must share one structure (image
+    shape, projection, and the shapes and dtypes of their values), by one compiled loop
+    over their stacked values (``jax.lax.map``): many views compile as one. ``focus``
+    (``(H, W)``) weighs every view alike. Returns the ``(N, H, W, 4)`` images."""
+    structures = {_structure(cam) for cam in cameras}
+    if len(structures) != 1:
+        raise ValueError(f"volshade.render: `cameras` must share one structure (image "
+                         f"shape, projection, shapes and dtypes of their values), got "
+                         f"{len(structures)}; march them one by one (march_view).")
+    # known degenerate values are refused here, naming the camera; inside the loop they
+    # would be traced, and refused at run time without the index
+    for i, cam in enumerate(cameras):
+        try:
+            _checks.refuse(cam, cam._degenerate(), "volshade.Camera", traced=False)
+        except ValueError as err:
+            raise ValueError(f"volshade.render: `camera[{i}]`: {err}") from None
+    focus = _checked_focus(shared, cameras[0].image_shape, focus)
+    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *cameras)
+    return _march_views(shared, stacked, focus)
+
+
+def _structure(camera: Camera) -> tuple:
+    """What must match for cameras to share a compiled march: the pytree structure
+    (static fields included) and each leaf's shape and dtype (a leaf may be a Python
+    float, set with eqx.tree_at)."""
+    return (jax.tree_util.tree_structure(camera),
+            tuple((jnp.shape(x), jnp.result_type(x)) for x in jax.tree_util.tree_leaves(camera)))
+
+
+def _checked_focus(shared: Medium, image_shape: tuple[int, int], focus: Array | None
+                   ) -> Array | None:
+    """``focus`` weights in the volume's dtype, refused unless finite, of the image's
+    shape and with importance-aware composition."""
+    where = "volshade.render"
+    if focus is None:
+        return None
+    focus = _checks.finite(_checks.as_float_array(focus, "focus", where).astype(
+        shared.volume.dtype), "focus", where)
+    if focus.shape != tuple(image_shape):
+        raise ValueError(f"{where}: `focus` must have the camera's image shape "
+                         f"{tuple(image_shape)}, got {focus.shape}.")
+    if shared.importance is None:
+        raise ValueError(f"{where}: `focus` weights need composition='importance'.")
+    return focus
+
+
+@eqx.filter_jit
+def _march_views(shared: Medium, cameras: Camera, focus: Array | None) -> Array:
+    """:func:`_march_view` of each of the stacked ``cameras``. Compiled here, once per
+    structure: an eager ``lax.map`` over a closure made on each call traced and
+    compiled its loop again on every call (a turntable of three 16^2 views of a 24^3
+    volume: 4.4-4.7 s a call, against 11-15 ms now)."""
+    return jax.lax.map(lambda camera: _march_view(shared, camera, focus), cameras)
 
 
 @eqx.filter_jit

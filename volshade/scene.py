@@ -28,7 +28,15 @@ from .feature_ao import FeatureAmbientOcclusion
 from .importance import Focus, Importance
 from .lao import LocalAmbientOcclusion
 from .obscurance import ObscuranceParams
-from .render import _CLASSIFICATIONS, BACKGROUND_HINT, march_view, medium
+from .render import (
+    _CLASSIFICATIONS,
+    BACKGROUND_HINT,
+    Medium,
+    _structure,
+    march_view,
+    march_views,
+    medium,
+)
 from .saliency import SaliencyModulation
 from .shading import SHADERS, Phong
 from .transfer import TransferFunction
@@ -503,27 +511,16 @@ def _check_cameras(camera: Any, where: str = "volshade.render") -> None:
                         f"got {', '.join(others)}.")
 
 
-def _each_view(view: Callable[[Camera], Array], cameras: list[Camera]) -> list[Array]:
-    """``view`` of each camera: one traced march for cameras of one structure (image
-    shape, projection and dtypes), mapped over their stacked values, so that many
-    views compile as fast as one; a march per camera otherwise."""
-    if len(cameras) == 1:
-        return [view(cameras[0])]
-    # known degenerate values are refused here, naming the camera; inside lax.map they
-    # would be traced, and refused at run time without the index
-    for i, cam in enumerate(cameras):
-        try:
-            _checks.refuse(cam, cam._degenerate(), "volshade.Camera", traced=False)
-        except ValueError as err:
-            raise ValueError(f"volshade.render: `camera[{i}]`: {err}") from None
-    # (a leaf may be a Python float, set with eqx.tree_at)
-    structure = {(jax.tree_util.tree_structure(c),
-                  tuple((jnp.shape(x), jnp.result_type(x)) for x in jax.tree_util.tree_leaves(c)))
-                 for c in cameras}
-    if len(structure) > 1:
-        return [view(c) for c in cameras]
-    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *cameras)
-    images = jax.lax.map(view, stacked)
+def _each_view(shared: Medium, focus: Focus | None, cameras: list[Camera]) -> list[Array]:
+    """The image of each camera: one compiled march for cameras of one structure
+    (:func:`~volshade.render.march_views`), so that many views compile as fast as one;
+    a march per camera otherwise."""
+    def weights(cam: Camera) -> Array | None:
+        return None if focus is None else focus.weights(cam.image_shape)
+
+    if len(cameras) == 1 or len({_structure(cam) for cam in cameras}) > 1:
+        return [march_view(shared, cam, weights(cam)) for cam in cameras]
+    images = march_views(shared, cameras, weights(cameras[0]))
     return [images[i] for i in range(len(cameras))]
 
 
@@ -598,10 +595,5 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
                     opacity_scale=opacity_scale, composition=scene.composition,
                     importance=scene.importance, background=scene.background,
                     classification=scene.classification)
-
-    def view(cam: Camera) -> Array:
-        focus = None if scene.focus is None else scene.focus.weights(cam.image_shape)
-        return march_view(shared, cam, focus)
-
-    images = _each_view(view, cameras)
+    images = _each_view(shared, scene.focus, cameras)
     return images[0] if isinstance(camera, Camera) else images
