@@ -523,7 +523,11 @@ def _each_view(shared: Medium, focus: Focus | None, cameras: list[Camera]) -> li
     def weights(cam: Camera) -> Array | None:
         return None if focus is None else focus.weights(cam.image_shape)
 
-    if len(cameras) == 1 or len({_structure(cam) for cam in cameras}) > 1:
+    try:
+        alike = len({_structure(cam) for cam in cameras}) == 1
+    except TypeError:  # a leaf that is no number (set with eqx.tree_at): march_view names it
+        alike = False
+    if len(cameras) == 1 or not alike:
         return [march_view(shared, cam, weights(cam)) for cam in cameras]
     images = march_views(shared, cameras, weights(cameras[0]))
     return [images[i] for i in range(len(cameras))]
