@@ -302,6 +302,14 @@ def test_load_nifti_missing_file(tmp_path):
     bogus.write_text("not an image")
     with pytest.raises(ValueError, match="bogus.nii.gz' is not an image nibabel can read"):
         data.load_nifti(bogus)
+    # found by a review: os.fspath's and NumPy's messages, naming neither argument nor file
+    for path in (None, 3):
+        with pytest.raises(TypeError, match=r"load_nifti: `path` must be a file path \(str or "
+                                            r"os.PathLike\), got"):
+            data.load_nifti(path)
+    empty = _write(tmp_path / "empty.nii", np.zeros((4, 0, 3), np.float32), np.eye(4))
+    with pytest.raises(ValueError, match=r"empty.nii' has shape \(4, 0, 3\): no voxels"):
+        data.load_nifti(empty)
 
 
 def test_load_nifti_refuses_cut_short_and_complex_files(tmp_path, xyz):

@@ -385,7 +385,11 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     where = "volshade.data.load_nifti"
     factor = _checks.positive_int(downsample, "downsample", where)
     normalize = _checks.flag(normalize, "normalize", where)
-    path = pathlib.Path(os.fspath(path)).expanduser()
+    try:
+        path = pathlib.Path(os.fspath(path)).expanduser()
+    except TypeError as err:
+        raise TypeError(f"{where}: `path` must be a file path (str or os.PathLike), got "
+                        f"{path!r:.80}.") from err
     if not path.is_file():
         raise FileNotFoundError(f"{where}: no such file: {str(path)!r}.")
     try:
@@ -403,6 +407,8 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
         raise ValueError(f"{where}: {str(path)!r} has shape {shape}; only 3-D volumes (or 4-D "
                          f"with a single volume) are supported; split the series first "
                          f"(e.g. `nibabel.four_to_three`).")
+    if 0 in shape[:3]:
+        raise ValueError(f"{where}: {str(path)!r} has shape {shape}: no voxels to render.")
     if not np.issubdtype(img.get_data_dtype(), np.number) or \
             np.issubdtype(img.get_data_dtype(), np.complexfloating):
         # get_fdata would keep only the real part of complex voxels, with a mere warning
