@@ -117,6 +117,12 @@ def test_nested_lists_become_arrays():
      TypeError, "most_salient_view: `per_area` must be True or False"),
     (lambda: vs.gradient.gradient_magnitude(jnp.ones((2, 3)), scaled="no"), TypeError,
      "gradient_magnitude: `scaled` must be True or False"),
+    # found by a review: NumPy's "zero-size array to reduction operation max"
+    (lambda: vs.gradient.gradient_magnitude(jnp.ones((3, 0))), ValueError,
+     r"gradient_magnitude: `gradient` has shape \(3, 0\): its last axis holds the vector "
+     r"components, and there are none"),
+    (lambda: vs.gradient.gradient_magnitude(jnp.ones((0, 3)), scaled=True), ValueError,
+     r"`gradient` is empty, shape \(0, 3\): `scaled=True` divides by the largest"),
     (lambda: vs.LocalAmbientOcclusion(3.0, brick_size=0), ValueError, "`brick_size` must be >= 1"),
     (lambda: vs.LocalAmbientOcclusion(3.0, brick_size=4.0), TypeError, "`brick_size` must be"),
     (lambda: vs.LocalAmbientOcclusion(3.0, max_radius=2.0), ValueError,

@@ -197,8 +197,9 @@ def gradient_magnitude(gradient: Float[ArrayLike, "*batch k"], *, scaled: bool =
     ones count as 0 (a CPU flushes them).
 
     Raises:
-        ValueError: ``gradient`` has no axis, or no element with ``scaled=True`` (no
-            maximum); NaN or inf in it (at run time when traced).
+        ValueError: ``gradient`` has no axis, no components (a last axis of size 0), or
+            no element with ``scaled=True`` (no maximum); NaN or inf in it (at run time
+            when traced).
         TypeError: ``scaled`` is not a bool, ``gradient`` not numeric.
     """
     where = "volshade.gradient.gradient_magnitude"
@@ -207,6 +208,9 @@ def gradient_magnitude(gradient: Float[ArrayLike, "*batch k"], *, scaled: bool =
     if gradient.ndim == 0:
         raise ValueError(f"{where}: `gradient` must have at least one axis (the vector "
                          f"components are the last one), got a scalar.")
+    if gradient.shape[-1] == 0:
+        raise ValueError(f"{where}: `gradient` has shape {gradient.shape}: its last axis "
+                         f"holds the vector components, and there are none.")
     if scaled and gradient.size == 0:
         raise ValueError(f"{where}: `gradient` is empty, shape {gradient.shape}: "
                          f"`scaled=True` divides by the largest magnitude, and there is none.")
