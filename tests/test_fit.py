@@ -432,9 +432,9 @@ def _bad_call(**change):
     scene = vs.Scene(volume=jnp.zeros((6, 6, 6)), transfer=vs.transfer.preset("grey"),
                      ambient="lao")
     cam = vs.Camera.orbit(image_shape=(4, 4))
-    kw = dict(camera=cam, target=jnp.zeros((4, 4, 4)), params=["lao.radius"])
+    kw = dict(scene=scene, camera=cam, target=jnp.zeros((4, 4, 4)), params=["lao.radius"])
     kw.update(change)
-    return vs.fit(scene, kw.pop("camera"), kw.pop("target"), **kw)
+    return vs.fit(kw.pop("scene"), kw.pop("camera"), kw.pop("target"), **kw)
 
 
 @pytest.mark.parametrize("change, error, match", [
@@ -457,6 +457,10 @@ def _bad_call(**change):
     (dict(params={"lao.radius": (0.0, float("inf"))}), ValueError, "finite numbers or None"),
     (dict(params={"lao.radius": (0.0,)}), ValueError, "a pair"),
     (dict(params={"lao.radius": (True, 50.0)}), TypeError, "must be numbers or None"),
+    # found by a review: strings were parsed by float(), and a scene of another type was
+    # reported as a path that cannot be followed
+    (dict(params={"lao.radius": ("0", "9")}), TypeError, "must be numbers or None"),
+    (dict(scene="x"), TypeError, "fit: `scene` must be a volshade.Scene .* got str"),
     (dict(params={"lao.radius": (20.0, 30.0)}), ValueError, "strictly inside its bounds"),
     (dict(camera=[]), TypeError, "non-empty sequence"),
     (dict(camera=[vs.Camera.orbit(image_shape=(4, 4))] * 2), ValueError,

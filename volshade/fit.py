@@ -226,6 +226,8 @@ def _bounds(path: str, value: Any) -> Bounds:
     try:
         if _checks.holds_bool(value):
             raise TypeError("a bool would pass as 0 or 1")
+        if any(isinstance(b, str | bytes) for b in value):
+            raise TypeError("float() would parse a string")
         low, high = (None if b is None else float(b) for b in value)
     except (TypeError, ValueError) as err:
         raise TypeError(f"{_WHERE}: the bounds of {path!r} must be numbers or None, got "
@@ -631,6 +633,8 @@ def fit(
         and after, the steps taken and the solver's result.
 
     Raises:
+        TypeError: ``scene`` not a :class:`~volshade.Scene`; bounds that are not
+            numbers (strings and bools included).
         ValueError / TypeError: a path that does not name a floating-point array
             leaf of the scene or part of one (the message lists the valid fields),
             a static parameter, one named twice or overlapping another, one that gets
@@ -658,6 +662,9 @@ def fit(
         >>> round(float(result.values["importance.intensity"]), 3)
         2.0
     """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"{_WHERE}: `scene` must be a volshade.Scene (the start of the fit), "
+                        f"got {type(scene).__name__}.")
     named, where, leaves = _parameters(scene, params)
     views = _views(camera, target, weights)
     max_steps = _checks.positive_int(max_steps, "max_steps", _WHERE)
