@@ -233,6 +233,9 @@ def test_options_that_do_not_apply_are_refused(tmp_path, capsys):
          "--d-max must be a finite number > 0 (mm), got inf"),
         (["shells", "--ambient", "obscurance", "--low", "0.7", "--high", "0.2"],
          "--low must be <= --high, got 0.7 and 0.2."),
+        # found by a review: NaN was reported as out of order
+        (["shells", "--ambient", "obscurance", "--low", "nan"],
+         "--low must be a finite number, got nan."),
         (["shells", "--projection", "orthographic", "--distance", "3"],
          "--distance applies to perspective views"),
         (["shells", "--ambient", "obscurance", "--low", "1.5"],

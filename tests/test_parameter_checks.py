@@ -136,7 +136,19 @@ def test_nested_lists_become_arrays():
     (lambda: vs.lao(jnp.zeros((4, 4, 4)), directions=6, radius="3"), TypeError,
      r"`radius` must be a real number \(voxels\), got '3'"),
     (lambda: vs.Scene(volume=VOL, transfer=TF, step="0.5"), TypeError, "`step` must be a number"),
-    (lambda: vs.Focus(radius=0.0), ValueError, "`radius` must be > 0 .*image height"),
+    (lambda: vs.Focus(radius=0.0), ValueError, "`radius` must be a finite number > 0 .*image "
+                                               "height"),
+    # found by a review: known NaN or inf were refused only by weights(), at the render
+    (lambda: vs.Focus(radius=jnp.inf), ValueError, "Focus: `radius` must be a finite number"),
+    (lambda: vs.Focus(outside=jnp.nan), ValueError, "Focus: `outside` must be finite"),
+    (lambda: vs.Focus(center=(jnp.nan, 0.5)), ValueError, "Focus: `center` must be finite"),
+    (lambda: vs.Focus(inside=jnp.inf), ValueError, "Focus: `inside` must be finite"),
+    # found by a review: NumPy's "data type 'foo' not understood"
+    (lambda: vs.focus_weights((3, 3), center=(1.0, 1.0), radius=1.0, dtype="x"), TypeError,
+     r"focus_weights: `dtype` must be a floating dtype \(e.g. jnp.float32\), got 'x'"),
+    (lambda: vs.TransferFunction.from_points([(0.0, 0, 0, 0, 0), (1.0, 1, 1, 1, 1)],
+                                             dtype="foo"), TypeError,
+     "from_points: `dtype` must be a floating dtype"),
     (lambda: vs.Focus(center=(32.0, 32.0)), ValueError, "`center` must be .*fractions .*"
      "focus_weights"),
     (lambda: vs.Focus(center=(0.5, -0.1)), ValueError, r"in \[0, 1\]"),
@@ -698,6 +710,9 @@ def test_mistakes_a_new_user_made_are_named():
     # 0-255 colours composited to values up to 255
     with pytest.raises(TypeError, match=r"composite: `colors` has the integer dtype uint8"):
         vs.composite(np.full((2, 3, 3), 200, np.uint8), np.full((2, 3), 0.5))
+    # found by a review: a bool mask composited as 0 and 1 (a bool background is refused)
+    with pytest.raises(TypeError, match=r"composite: `colors` has the dtype bool"):
+        vs.composite(np.ones((2, 3, 3), bool), np.full((2, 3), 0.5))
     # a nested list is an array of numbers (the integer check failed on it), a string not
     np.testing.assert_array_equal(vs.composite([[0.5, 0.0, 0.0]], [0.5]), [0.5, 0, 0, 0.5])
     with pytest.raises(TypeError, match=r"composite: `colors` must be an array of numbers"):

@@ -114,6 +114,9 @@ def _ambient_options(args: argparse.Namespace, measured: bool) -> dict:
         default_high = 0.6 if measured else 1.0
         low = 0.0 if args.low is None else args.low
         high = default_high if args.high is None else args.high
+        for flag, value in (("--low", low), ("--high", high)):
+            if not math.isfinite(value):
+                raise ValueError(f"{flag} must be a finite number, got {value:g}.")
         if not low <= high:
             said = "" if args.high is not None else (
                 f" (the default for {'real data' if measured else 'phantoms'})")

@@ -794,6 +794,9 @@ def composite(
         colors = jnp.asarray(colors)  # (a nested list too; converted once)
     except (TypeError, ValueError):
         pass  # not numbers: as_float_array names them
+    if hasattr(colors, "dtype") and colors.dtype == jnp.bool_:
+        raise TypeError(f"{where}: `colors` has the dtype bool; opacity-weighted colours "
+                        f"are floats (a mask would composite as 0 and 1).")
     if hasattr(colors, "dtype") and jnp.issubdtype(colors.dtype, jnp.integer):
         # 0-255 colours would composite to values up to 255 (as `save_png` and `vs.fit`
         # refuse integer images)

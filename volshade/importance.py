@@ -670,7 +670,8 @@ class Focus(eqx.Module):
 
     Raises:
         ValueError: an unknown ``kind``; ``center`` not of shape ``(2,)``; when known,
-            ``radius`` not > 0 (or NaN) or ``center`` outside [0, 1]; from
+            ``radius`` not a finite number > 0, NaN or inf in ``center``, ``inside`` or
+            ``outside``, or ``center`` outside [0, 1]; from
             :meth:`weights`, a non-scalar ``radius``, ``inside`` or ``outside``.
         TypeError: a non-numeric (or bool) field.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): from
@@ -694,8 +695,11 @@ class Focus(eqx.Module):
         if jnp.shape(self.center) != (2,):
             raise ValueError(f"volshade.Focus: `center` must be (row, column) fractions, "
                              f"got shape {jnp.shape(self.center)}.")
-        _checks.refuse(self, [(~(self.radius > 0), "`radius` must be > 0 (a fraction of the "
-                                                   "image height)."),
+        _checks.refuse(self, [*((_checks.non_finite(getattr(self, name)),
+                                 f"`{name}` must be finite.")
+                                for name in ("center", "inside", "outside")),
+                              (_checks.not_positive(self.radius), "`radius` must be a "
+                               "finite number > 0 (a fraction of the image height)."),
                               self._center_problem()],
                        "volshade.Focus", traced=False)  # traced: by weights()
 
