@@ -384,6 +384,11 @@ def test_cameras_with_no_image_are_refused():
         (lambda: Camera.orbit(fov=0.0), "fov"),
         (lambda: Camera.orbit(fov=180.0), "fov"),
         (lambda: Camera.orbit(width=0.0, projection="orthographic"), "width"),
+        # found by a review: the other projection's parameter was ignored without a word
+        (lambda: Camera.orbit(fov=40.0, projection="orthographic"),
+         "Camera.orbit: `fov` does not apply to orthographic views .* set "
+         "projection='perspective'"),
+        (lambda: Camera.orbit(width=1.0), "`width` does not apply to perspective views"),
     ]
     for make, match in bad:
         with pytest.raises(ValueError, match=match):

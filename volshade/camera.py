@@ -166,8 +166,8 @@ class Camera(eqx.Module):
         distance: float = 2.5,
         image_shape: tuple[int, int] = (256, 256),
         projection: str = "perspective",
-        fov: float = 30.0,
-        width: float = 1.2,
+        fov: float | None = None,
+        width: float | None = None,
         target=(0.0, 0.0, 0.0),
     ) -> "Camera":
         r"""A camera on a sphere around ``target``, up along ``+d``.
@@ -182,12 +182,14 @@ class Camera(eqx.Module):
                 longest side is 1).
             image_shape: ``(H, W)``.
             projection: ``"perspective"`` or ``"orthographic"``.
-            fov: vertical field of view in degrees (perspective).
-            width: view height in scene units (orthographic).
+            fov: vertical field of view in degrees (perspective only; default 30).
+            width: view height in scene units (orthographic only; default 1.2).
             target: ``(3,)`` point looked at.
 
         Raises:
-            ValueError: ``target`` not of shape ``(3,)``; a non-scalar ``azimuth``,
+            ValueError: ``fov`` given for an orthographic view or ``width`` for a
+                perspective one (it would be ignored); ``target`` not of shape
+                ``(3,)``; a non-scalar ``azimuth``,
                 ``elevation`` or ``distance``; the errors of :class:`Camera` for
                 ``image_shape`` and ``projection``.
             TypeError: non-numeric (or bool) arguments; ``image_shape`` not ints.
@@ -202,6 +204,13 @@ class Camera(eqx.Module):
             (64, 64, 3)
         """
         where = "volshade.Camera.orbit"
+        for name, value, other, own in (("fov", fov, "orthographic", "perspective"),
+                                        ("width", width, "perspective", "orthographic")):
+            if value is not None and isinstance(projection, str) and projection == other:
+                raise ValueError(f"{where}: `{name}` does not apply to {other} views (it would "
+                                 f"be ignored); leave it out, or set projection={own!r}.")
+        fov = 30.0 if fov is None else fov
+        width = 1.2 if width is None else width
         dtype = jnp.result_type(float)
         given = {"azimuth": azimuth, "elevation": elevation, "target": target,
                  "distance": distance, "fov": fov, "width": width}
