@@ -25,9 +25,10 @@ Importance-aware compositing (eq. 8) lets a sample's importance $I_s$ scale the
 accumulated colour and opacity down just enough for the sample to be seen; see
 :func:`importance_step` for the exact, numerically safe form used here.
 
-**Gradients.** The renderer lets JAX differentiate the steps (inside its
-checkpointed scan). :func:`composite` runs importance-aware compositing under a
-hand-derived reverse-mode adjoint of the whole scan instead: per sample it stores
+**Gradients.** The renderer lets JAX differentiate the steps (inside its scan,
+checkpointed a chunk of samples at a time). :func:`composite` runs importance-aware
+compositing under a hand-derived reverse-mode adjoint of the whole scan instead: per
+sample it stores
 the accumulated colour, $T_i$ and the importance gap, and the backward scan is scalar
 per ray, with the colour work done in one vectorised pass outside it. Its
 gradients equal JAX's reverse mode through :func:`importance_step` (tested to

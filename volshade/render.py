@@ -15,9 +15,12 @@ interpolated values would pass through the classes between two labels;
 Wittenbrink, Malzbender and Goss 1998). Opacities are corrected to each
 segment's length (:meth:`volshade.TransferFunction.opacity`).
 
-The march is a ``lax.scan`` over samples carrying all pixels at once; its
-body is rematerialised in reverse mode (``jax.checkpoint``), so memory for
-gradients is one compositing state per sample, not every intermediate.
+The march is a ``lax.scan`` over samples carrying all pixels at once, in chunks of
+16 samples, rematerialised in reverse mode a chunk at a time (``jax.checkpoint``),
+so memory for gradients is one compositing state per chunk plus one chunk's
+intermediates, not every intermediate. The rays are marched in four groups of
+similar length, each only as far as its longest ray reaches: a chunk past that is
+skipped (it would change nothing).
 
 :func:`march` is :func:`medium` (the checks and the volumes every view shares:
 the gradient volume, the ambient and opacity-scale volumes) followed by
@@ -335,25 +338,64 @@ def _march_views(shared: Medium, cameras: Camera, focus: Array | None) -> Array:
     return jax.lax.map(lambda camera: _march_view(shared, camera, focus), cameras)
 
 
+# Rays are marched in groups of similar length, each only as far as its longest ray
+# reaches, in chunks of steps: a chunk past that is skipped whole. A box's rays differ
+# in length (corner, edge, centre, missed), and a march of every ray over the full
+# diagonal spent 74% of its samples outside the box (the head at 128^2: a render 0.95 s
+# -> 0.55 s, its gradient 3.1 -> 2.2 s). A skipped step would have had length 0,
+# opacity 0 and changed nothing, bit for bit, so the images are those of the full march.
+_RAY_GROUPS = 4
+_CHUNK = 16
+
+
 @eqx.filter_jit
 def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
     """:func:`march_view` after its checks, compiled once per structure: called
     eagerly (a notebook's ``vs.render(scene, camera)``), the march would otherwise be
     traced and compiled again on every call (its loop body is a new closure each time)
     and every operation around it compiled on its own."""
+    volume, spacing = shared.volume, shared.spacing
+    dtype = volume.dtype
+    half_extent, _ = box_half_extent(volume.shape, spacing)
+    half_extent = half_extent.astype(dtype)
+    origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())
+    image_shape = origins.shape[:-1]
+    t_near, t_far = intersect_box(origins, directions, half_extent)
+    hit = t_far > t_near
+    length = jnp.where(hit, t_far - t_near, 0).reshape(-1)
+    t_near = jnp.where(hit, t_near, 0)  # a missed ray may carry t = +-max: keep positions finite
+    # the rays by length, in equal groups (padded with copies of the longest, which
+    # cost no chunk more and are dropped)
+    n_rays = length.shape[0]
+    groups = min(_RAY_GROUPS, n_rays)
+    order = jnp.argsort(length)
+    order = jnp.concatenate([order, jnp.broadcast_to(order[-1:], (-n_rays % groups,))])
+
+    def grouped(x: Array) -> Array:
+        x = x.reshape(n_rays, *x.shape[len(image_shape):])[order]
+        return x.reshape(groups, -1, *x.shape[1:])
+
+    rays = [grouped(x) for x in (origins, directions, t_near, length)]
+    rays.append(None if focus is None else grouped(focus))
+    images = jax.lax.map(lambda group: _march_rays(shared, *group), rays)
+    images = images.reshape(-1, 4)[:n_rays]
+    return jnp.zeros_like(images).at[order[:n_rays]].set(images, unique_indices=True) \
+        .reshape(*image_shape, 4)
+
+
+def _march_rays(shared: Medium, origins: Array, directions: Array, t_near: Array,
+                length: Array, focus: Array | None) -> Array:
+    """The ``(N, 4)`` images of ``N`` rays that enter the box at ``t_near`` and cross it
+    over ``length`` (0 for a miss), marched in chunks of :data:`_CHUNK` steps as far as
+    the longest of them reaches."""
     volume, transfer, spacing, comp = shared.volume, shared.transfer, shared.spacing, \
         shared.compositor
     dtype = volume.dtype
     measured = shared.importance is not None
     half_extent, scale = box_half_extent(volume.shape, spacing)
     half_extent = half_extent.astype(dtype)
-    origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())
     batch = origins.shape[:-1]
     bg = jnp.broadcast_to(shared.background, (*batch, 3))
-    t_near, t_far = intersect_box(origins, directions, half_extent)
-    hit = t_far > t_near
-    length = jnp.where(hit, t_far - t_near, 0)
-    t_near = jnp.where(hit, t_near, 0)  # a missed ray may carry t = +-max: keep positions finite
     dt = jnp.asarray(shared.step / scale, dtype)
     full_ratio = jnp.asarray(shared.step / transfer.step0, dtype)
     to_index = jnp.asarray(scale / np.asarray(spacing), dtype)
@@ -367,8 +409,8 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
     def point(k, seg):
         """Sample ``k``'s point (in a segment of length ``seg``) in voxel index coordinates."""
         t_mid = t_near + k * dt + 0.5 * seg
-        return (origins + t_mid[..., None] * directions + half_extent[None, None]) \
-            * to_index[None, None] - 0.5
+        return (origins + t_mid[..., None] * directions + half_extent[None]) \
+            * to_index[None] - 0.5
 
     def body(carry, k):
         state, depth = carry
@@ -415,9 +457,22 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
         state = comp.step(state, Sample(alpha[..., None] * shaded, alpha, sample_imp))
         return (state, depth), None
 
+    reach = jnp.max(length)
+
+    def chunk(carry, first):
+        # past the longest ray every step has length 0 (and so opacity 0): the chunk
+        # would change nothing, and is skipped
+        steps = first + jnp.arange(_CHUNK, dtype=dtype)
+        return jax.lax.cond(first * dt < reach, lambda c: jax.lax.scan(body, c, steps)[0],
+                            lambda c: c, carry), None
+
     carry = (comp.init(batch, dtype), jnp.zeros(batch, dtype))
-    steps = jnp.arange(n_samples(volume.shape, spacing, shared.step), dtype=dtype)
-    (state, _), _ = jax.lax.scan(jax.checkpoint(body), carry, steps)
+    n_chunks = -(-n_samples(volume.shape, spacing, shared.step) // _CHUNK)
+    firsts = jnp.arange(0, n_chunks * _CHUNK, _CHUNK, dtype=dtype)
+    # rematerialised in reverse mode a chunk at a time: the state at each chunk's start
+    # is kept, and one chunk's intermediates while it is differentiated (checkpointing
+    # each step kept a state per step, and its gradient took 1.5x as long)
+    (state, _), _ = jax.lax.scan(jax.checkpoint(chunk), carry, firsts)
     bg_importance = shared.importance.background_importance(focus) if measured else 0
     return comp.finish(state, bg, jnp.broadcast_to(jnp.asarray(bg_importance, dtype), batch))
 
