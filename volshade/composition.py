@@ -28,9 +28,8 @@ accumulated colour and opacity down just enough for the sample to be seen; see
 **Gradients.** The renderer lets JAX differentiate the steps (inside its scan,
 checkpointed a chunk of samples at a time). :func:`composite` runs importance-aware
 compositing under a hand-derived reverse-mode adjoint of the whole scan instead: per
-sample it stores
-the accumulated colour, $T_i$ and the importance gap, and the backward scan is scalar
-per ray, with the colour work done in one vectorised pass outside it. Its
+sample it stores the accumulated colour, $T_i$ and the importance gap, and the backward
+scan is scalar per ray, with the colour work done in one vectorised pass outside it. Its
 gradients equal JAX's reverse mode through :func:`importance_step` (tested to
 rounding, hard cases included); forward mode (``jax.jvp``) is not available there.
 
