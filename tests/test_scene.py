@@ -271,16 +271,6 @@ def test_effect_parameters_default_when_used_and_are_refused_when_not():
         with pytest.raises(ValueError, match=r"`phong` is used only .* pass `phong=None` too"):
             dataclasses.replace(given, shading="none")
     assert dataclasses.replace(lit, shading="none", phong=None).phong is None
-    # found by a review: parameters given equal to their defaults are the scene that leaves
-    # them out (the same static fields: one compiled render for both, under filter_jit)
-    for kind, given in (("phong", Phong()), ("lao", LocalAmbientOcclusion()),
-                        ("importance", Importance()), ("obscurance", ObscuranceParams())):
-        stage = {"phong": "shading", "importance": "composition"}.get(kind, "ambient")
-        left_out = Scene(volume=_volume(), transfer=tf, **{stage: kind})
-        explicit = Scene(volume=_volume(), transfer=tf, **{stage: kind, kind: given})
-        assert eqx.tree_equal(left_out, explicit), kind
-        assert getattr(dataclasses.replace(explicit, **{stage: "none" if stage != "composition"
-                                                        else "standard"}), kind) is None
 
 
 @pytest.mark.slow

@@ -299,9 +299,8 @@ class Scene(eqx.Module):
     # last: the fields before it keep their positions
     classification: str = eqx.field(static=True, default="post", converter=_option(
         "classification", _CLASSIFICATIONS))
-    # the effect parameters __post_init__ filled in (or given equal to their defaults): a
-    # copy that turns their effect off (dataclasses.replace) drops them, where other given
-    # ones are refused
+    # the effect parameters __post_init__ filled in (not given): a copy that turns their
+    # effect off (dataclasses.replace) drops them, where given ones are refused
     _defaulted: tuple[str, ...] = eqx.field(static=True, default=(), repr=False)
 
     def __post_init__(self):
@@ -316,10 +315,6 @@ class Scene(eqx.Module):
                 defaulted.add(name)
                 continue
             if name not in defaulted:
-                if used and _changed(value, kind) is False:
-                    # given as the defaults are: the same scene as one that leaves them
-                    # out, so the same static fields and one compiled render for both
-                    defaulted.add(name)
                 continue
             changed = True if value is None else _changed(value, kind)
             if changed is True:
