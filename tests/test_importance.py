@@ -360,6 +360,11 @@ def test_sample_importance_errors():
         with pytest.raises(ValueError, match=rf"`params.{weight}` is 2, but its measure needs "
                                              rf"{missing}, not given"):
             sample_importance(Importance(**{weight: 2.0}), **given)
+    # a global weight of 0 turns every measure off, unless per-ray weights replace it
+    off = Importance(global_weight=0.0, silhouette=5.0)
+    np.testing.assert_array_equal(sample_importance(off, intensity=jnp.ones(2))[0], [0, 0])
+    with pytest.raises(ValueError, match=r"`params.silhouette` is 5"):
+        sample_importance(off, intensity=jnp.ones(2), global_weight=jnp.ones(2))
     # a traced weight cannot be known to be non-zero: its measure is left out (0)
     np.testing.assert_array_equal(jax.jit(lambda w: sample_importance(
         Importance(intensity=1.0, lighting=w), intensity=jnp.ones(2))[0])(2.0), [1.0, 1.0])

@@ -403,7 +403,7 @@ def sample_importance(
     params = _checks.refuse(params.checked(), params._non_finite(), where)
     scalars, vectors = ({k: _feature(v, k, where) for k, v in features.items() if v is not None}
                         for features in (scalars, vectors))
-    _refuse_unread(params, {*scalars, *vectors}, where)
+    _refuse_unread(params, {*scalars, *vectors}, per_ray=global_weight is not None, where=where)
     if global_weight is not None:
         global_weight = _checks.finite(
             _checks.as_float_array(global_weight, "global_weight", where), "global_weight",
@@ -422,17 +422,21 @@ _NEEDS = {"intensity": ("intensity",), "extinction": ("extinction",),
           "lighting": ("normal", "view", "gradient_magnitude")}
 
 
-def _refuse_unread(params: Importance, given: set[str], where: str) -> None:
+def _refuse_unread(params: Importance, given: set[str], *, per_ray: bool, where: str) -> None:
     """Refuse what would be dropped without a word: vectors that no measure reads
     (silhouetteness and lighting need ``normal``, ``view`` and ``gradient_magnitude``
-    together), and a known non-zero weight whose measure lacks a feature."""
+    together), and a known non-zero weight whose measure lacks a feature (unless a
+    global weight of 0, not replaced by ``per_ray`` weights, turns them all off)."""
     shape_measures = set(_NEEDS["silhouette"])
     unread = [k for k in _VECTORS if k in given] if not shape_measures <= given else []
     if unread:
-        missing = ", ".join(f"`{k}`" for k in _NEEDS["silhouette"] if k not in given)
+        missing = [f"`{k}`" for k in _NEEDS["silhouette"] if k not in given]
         raise ValueError(f"{where}: {', '.join(f'`{k}`' for k in unread)} would be unread: "
                          f"only silhouetteness and lighting read the vectors, and they also "
-                         f"need {missing}. Give it, or leave the vectors out.")
+                         f"need {', '.join(missing)}. Give {'it' if len(missing) == 1 else 'them'}"
+                         f", or leave the vectors out.")
+    if not per_ray and _checks.concrete(params.global_weight) == 0:
+        return  # importance off: no weight is read
     for weight, needs in _NEEDS.items():
         value = _checks.concrete(getattr(params, weight))
         missing = [k for k in needs if k not in given]
