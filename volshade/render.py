@@ -343,10 +343,10 @@ def _march_views(shared: Medium, cameras: Camera, focus: Array | None) -> Array:
 # in length (corner, edge, centre, missed), and a march of every ray over the full
 # diagonal spent 74% of its samples outside the box (the head at 2 mm, Phong and LAO,
 # 2-core CPU: a 128^2 render 0.43 -> 0.25 s, a 96^2 render with its gradient 0.71 ->
-# 0.37 s). A skipped step would have had length 0,
-# opacity 0 and changed nothing, bit for bit, so the images are those of the full march
-# up to rounding (the head: identical; elsewhere XLA may fuse the grouped program's
-# arithmetic otherwise, a few float32 ulps).
+# 0.37 s). A skipped step would have had length 0, opacity 0 and changed nothing, bit
+# for bit, so the images are those of the full march up to rounding (the head:
+# identical; elsewhere XLA may fuse the grouped program's arithmetic otherwise, a few
+# float32 ulps).
 _RAY_GROUPS = 4
 _CHUNK = 16
 
