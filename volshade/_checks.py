@@ -63,12 +63,12 @@ def numbers(x: Any, name: str, where: str) -> Array:
 def floating_dtype(dtype: Any, where: str) -> Any:
     """``dtype`` if it is a floating dtype; an integer one would truncate every value."""
     try:
-        jnp.dtype(dtype)
+        given = jnp.dtype(dtype)
     except TypeError as err:
         raise TypeError(f"{where}: `dtype` must be a floating dtype (e.g. jnp.float32), got "
                         f"{dtype!r:.80}.") from err
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"{where}: `dtype` must be a floating dtype, got {jnp.dtype(dtype)}.")
+    if not jnp.issubdtype(given, jnp.floating):
+        raise TypeError(f"{where}: `dtype` must be a floating dtype, got {given}.")
     return dtype
 
 

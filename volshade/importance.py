@@ -415,7 +415,8 @@ def sample_importance(
     return _compiled_sample_importance(params, scalars, vectors, global_weight)
 
 
-# the features each measure reads
+# the features each measure reads (silhouetteness and lighting read the same three, and
+# are the only readers of the vectors)
 _NEEDS = {"intensity": ("intensity",), "extinction": ("extinction",),
           "gradient": ("gradient_magnitude",), "unocclusion": ("optical_depth",),
           "silhouette": ("normal", "view", "gradient_magnitude"),
@@ -427,8 +428,8 @@ def _refuse_unread(params: Importance, given: set[str], *, per_ray: bool, where:
     (silhouetteness and lighting need ``normal``, ``view`` and ``gradient_magnitude``
     together), and a known non-zero weight whose measure lacks a feature (unless a
     global weight of 0, not replaced by ``per_ray`` weights, turns them all off)."""
-    shape_measures = set(_NEEDS["silhouette"])
-    unread = [k for k in _VECTORS if k in given] if not shape_measures <= given else []
+    unread = [k for k in _VECTORS if k in given] if not set(_NEEDS["silhouette"]) <= given \
+        else []
     if unread:
         missing = [f"`{k}`" for k in _NEEDS["silhouette"] if k not in given]
         raise ValueError(f"{where}: {', '.join(f'`{k}`' for k in unread)} would be unread: "
@@ -494,7 +495,7 @@ def _sample_importance(params, scalars, vectors, global_weight):
     g = jnp.broadcast_to(g, batch)
     scale = jnp.ones(batch, dtype)
     n, v = vectors.get("normal"), vectors.get("view")
-    if n is not None and v is not None and m_g is not None:
+    if set(_NEEDS["silhouette"]) <= {*scalars, *vectors}:
         sil = _silhouetteness(n, v, m_g, p["silhouette_exponent"], p["silhouette_start"],
                               p["silhouette_end"])
         total = total + p["silhouette"] * sil

@@ -359,7 +359,7 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
     and every operation around it compiled on its own."""
     volume, spacing = shared.volume, shared.spacing
     dtype = volume.dtype
-    half_extent, _ = box_half_extent(volume.shape, spacing)
+    half_extent, scale = box_half_extent(volume.shape, spacing)
     half_extent = half_extent.astype(dtype)
     origins, directions = jax.tree.map(lambda a: a.astype(dtype), camera.rays())
     image_shape = origins.shape[:-1]
@@ -380,23 +380,23 @@ def _march_view(shared: Medium, camera: Camera, focus: Array | None) -> Array:
 
     rays = [grouped(x) for x in (origins, directions, t_near, length)]
     rays.append(None if focus is None else grouped(focus))
-    images = jax.lax.map(lambda group: _march_rays(shared, *group), rays)
+    images = jax.lax.map(lambda group: _march_rays(shared, half_extent, scale, *group), rays)
     images = images.reshape(-1, 4)[:n_rays]
     return jnp.zeros_like(images).at[order[:n_rays]].set(images, unique_indices=True) \
         .reshape(*image_shape, 4)
 
 
-def _march_rays(shared: Medium, origins: Array, directions: Array, t_near: Array,
-                length: Array, focus: Array | None) -> Array:
-    """The ``(N, 4)`` images of ``N`` rays that enter the box at ``t_near`` and cross it
-    over ``length`` (0 for a miss), marched in chunks of :data:`_CHUNK` steps as far as
-    the longest of them reaches."""
+def _march_rays(shared: Medium, half_extent: Array, scale: float, origins: Array,
+                directions: Array, t_near: Array, length: Array, focus: Array | None
+                ) -> Array:
+    """The ``(N, 4)`` images of ``N`` rays that enter the box (of ``half_extent``, in
+    units of ``scale`` mm, :func:`~volshade.camera.box_half_extent`) at ``t_near`` and
+    cross it over ``length`` (0 for a miss), marched in chunks of :data:`_CHUNK` steps
+    as far as the longest of them reaches."""
     volume, transfer, spacing, comp = shared.volume, shared.transfer, shared.spacing, \
         shared.compositor
     dtype = volume.dtype
     measured = shared.importance is not None
-    half_extent, scale = box_half_extent(volume.shape, spacing)
-    half_extent = half_extent.astype(dtype)
     batch = origins.shape[:-1]
     bg = jnp.broadcast_to(shared.background, (*batch, 3))
     dt = jnp.asarray(shared.step / scale, dtype)
