@@ -664,6 +664,75 @@ def test_lists_set_with_tree_at_become_arrays_and_dicts_are_refused_by_path():
             vs.render(eqx.tree_at(where, scene, value), CAM)
 
 
+def test_modules_set_with_tree_at_are_checked_where_they_are_used():
+    # found by a pytree review: eqx.tree_at skips the constructors' checks. An
+    # Importance weight of 16 values (the rays of a group of an 8 x 8 image) rendered a
+    # wrong image without a word; a transfer function's colours of shape (K, 4) were
+    # accepted; an interval's end set to a Python float failed with "'float' object has
+    # no attribute 'astype'"; a clip put into an obscurance scene rendered unclipped
+    cam = vs.Camera.orbit(azimuth=30, elevation=20, image_shape=(8, 8))
+    important = vs.Scene(volume=VOL, transfer=TF, composition="importance",
+                         importance=vs.Importance(intensity=2.0))
+    vector = eqx.tree_at(lambda s: s.importance.intensity, important, jnp.linspace(0, 4, 16))
+    scalar_match = r"Importance: `intensity` must be a scalar, got shape \(16,\)"
+    with pytest.raises(ValueError, match=scalar_match):
+        vs.render(vector, cam)
+    with pytest.raises(ValueError, match=scalar_match):
+        eqx.filter_jit(vs.render)(vector, cam)
+    with pytest.raises(ValueError, match=r"`intensity` must be a scalar, got shape \(3,\)"):
+        vs.sample_importance(eqx.tree_at(lambda i: i.intensity, vs.Importance(), jnp.ones(3)),
+                             intensity=jnp.ones(3))
+    k = TF.points.shape[0]
+    for where, value, match in [
+            (lambda t: t.colors, jnp.zeros((k, 4)), rf"`colors` must have shape \({k}, 3\)"),
+            (lambda t: t.opacities, jnp.zeros(k - 1), rf"`opacities` must have shape \({k},\)"),
+            (lambda t: t.points, jnp.stack([TF.points] * 2),
+             r"`points` must be a non-empty 1-D array, got shape .*; a batch of transfer "
+             r"functions is for jax.vmap")]:
+        tf = eqx.tree_at(where, TF, value)
+        with pytest.raises(ValueError, match=match):
+            tf.opacity(VOL)
+        with pytest.raises(ValueError, match=match):
+            vs.render(eqx.tree_at(lambda s: s.transfer, VOL_SCENE, tf), CAM)
+    listed = eqx.tree_at(lambda t: t.opacities, TF, np.asarray(TF.opacities).tolist())
+    np.testing.assert_array_equal(listed.opacity(VOL), TF.opacity(VOL))
+    interval = vs.IntervalFeature(0.2, 0.6)
+    np.testing.assert_array_equal(
+        eqx.tree_at(lambda f: f.low, interval, 0.2).opacity(VOL, TF), interval.opacity(VOL, TF))
+    # the scene's structure, as the constructor checks it
+    clip = vs.SphereClip(center=(6.0, 6.0, 6.0), radius=3.0)
+    lit = vs.Scene(volume=VOL, transfer=TF, shading="phong")
+    for scene, where, value, exc, match in [
+            (_obscurance_scene(vs.ObscuranceParams(d_max=4.0)), lambda s: s.clip, clip,
+             ValueError, "ambient='obscurance' does not take `clip` into account"),
+            (lit, lambda s: s.lao, vs.LocalAmbientOcclusion(2.0), ValueError,
+             "`lao` is used only with ambient='lao'"),
+            (lit, lambda s: s.focus, vs.Focus(), ValueError,
+             "`focus` needs composition='importance'"),
+            (lit, lambda s: s.phong, vs.Importance(), TypeError,
+             "`phong` must be a volshade.Phong, got Importance")]:
+        with pytest.raises(exc, match=f"volshade.render: {re.escape(match)}"):
+            vs.render(eqx.tree_at(where, scene, value, is_leaf=lambda x: x is None), CAM)
+
+
+def test_numpy_scalars_in_static_fields_become_python_values(recwarn):
+    # equinox warned "A JAX array is being set as static!" and kept the NumPy scalar
+    modules = {"level": vs.ObscuranceParams(level=np.int64(1), color_bleeding=np.bool_(True),
+                                            density=np.str_("opacity")),
+               "size": vs.SaliencyModulation(size=np.int64(3), multiply=np.bool_(False)),
+               "kind": vs.Focus(kind=np.str_("circular")),
+               "merge": vs.FeatureAmbientOcclusion([TF], merge=np.str_("feature")),
+               "projection": vs.Camera(eye=(0.0, 3.0, 0.0), target=(0.0, 0.0, 0.0),
+                                       up=(1.0, 0.0, 0.0), fov=30.0, width=1.2,
+                                       projection=np.str_("perspective"))}
+    assert not [w for w in recwarn if "static" in str(w.message)]
+    for module in modules.values():
+        for field in dataclasses.fields(module):
+            if field.metadata.get("static"):
+                assert not isinstance(getattr(module, field.name), np.generic), field.name
+    assert type(modules["size"].size) is int and type(modules["kind"].kind) is str
+
+
 def test_mistakes_a_new_user_made_are_named():
     # found by a new-user walkthrough; each was accepted, or refused without the fix
     cam = vs.Camera.orbit(image_shape=(4, 4))

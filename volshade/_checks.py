@@ -186,6 +186,13 @@ def non_finite(x: Any, *, minus_inf: bool = False) -> Array:
     return ~(xp.isfinite(x) | ((x == -np.inf) if minus_inf else False))
 
 
+def python_scalar(value: Any) -> Any:
+    """A NumPy scalar (``np.int64(1)``, ``np.bool_(True)``, ``np.str_("max")``) as the
+    Python value it holds, anything else as given (checked by its field): a converter for
+    static fields, where equinox warns of a NumPy scalar as of an array."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
 def flag(value: Any, name: str, where: str) -> bool:
     """A static on/off option: ``True`` or ``False`` only (a string such as ``"no"`` is
     truthy and would silently switch the option on)."""

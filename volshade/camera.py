@@ -105,7 +105,8 @@ class Camera(eqx.Module):
     width: Float[Array, ""] = eqx.field(converter=_checks.leaf("volshade.Camera", "width"))
     image_shape: tuple[int, int] = eqx.field(static=True, default=(256, 256),
                                              converter=lambda s: _image_shape(s))
-    projection: str = eqx.field(static=True, default="perspective")
+    projection: str = eqx.field(static=True, default="perspective",
+                                converter=_checks.python_scalar)
 
     def __check_init__(self):
         where = "volshade.Camera"

@@ -386,7 +386,7 @@ class FeatureAmbientOcclusion(eqx.Module):
             raise TypeError(f"{where}: `lao` must be a volshade.LocalAmbientOcclusion, got "
                             f"{type(self.lao).__name__}.")
         _checks.option(merge, MERGES, "merge", where)
-        self.merge = merge
+        self.merge = _checks.python_scalar(merge)
 
     def __call__(self, volume: Volume, *, base: TransferFunction | None = None,
                  step: float | None = None) -> Volume:

@@ -140,15 +140,20 @@ class Importance(eqx.Module):
     may_be_minus_inf: ClassVar[tuple[str, ...]] = ("background",)
 
     def __check_init__(self):
-        for name, value in _leaves(self).items():
-            if jnp.ndim(value) != 0:
-                raise ValueError(f"volshade.Importance: `{name}` must be a scalar, got shape "
-                                 f"{jnp.shape(value)}; for per-ray global weights pass "
-                                 f"`global_weight=` to `sample_importance`.")
+        self._check_scalars()
         # traced values (a fit, jit) are checked by the renderer (with checked() and its
         # named finiteness check) and by sample_importance
         _checks.refuse(self, [*self._non_finite(), *self._problems()], "volshade.Importance",
                        traced=False)
+
+    def _check_scalars(self) -> None:
+        for name, value in _leaves(self).items():
+            # set with eqx.tree_at, it skipped its converter: refused as that would
+            _checks.float_leaf(value, name, "volshade.Importance")
+            if jnp.ndim(value) != 0:
+                raise ValueError(f"volshade.Importance: `{name}` must be a scalar, got shape "
+                                 f"{jnp.shape(value)}; for per-ray global weights pass "
+                                 f"`global_weight=` to `sample_importance`.")
 
     def _non_finite(self) -> list[tuple[Array, str]]:
         """NaN or inf weights (-inf allowed where :attr:`may_be_minus_inf` says)."""
@@ -172,7 +177,10 @@ class Importance(eqx.Module):
                  "`silhouette_start` must be < `silhouette_end` (the smoothstep's edges).")]
 
     def checked(self) -> "Importance":
-        """These weights, refused at run time where traced values are out of range."""
+        """These weights, refused at run time where traced values are out of range, and
+        at once where they are not scalars (a field set with ``eqx.tree_at`` skipped the
+        constructor's checks)."""
+        self._check_scalars()
         return _checks.refuse(self, self._problems(), "volshade.Importance")
 
     def background_importance(self, global_weight: ArrayLike | None = None) -> Array:
@@ -689,7 +697,7 @@ class Focus(eqx.Module):
         converter=_checks.leaf("volshade.Focus", "center"), default=(0.5, 0.5))
     radius: Float[Array, ""] = eqx.field(
         converter=_checks.leaf("volshade.Focus", "radius"), default=0.25)
-    kind: str = eqx.field(static=True, default="gaussian")
+    kind: str = eqx.field(static=True, default="gaussian", converter=_checks.python_scalar)
     inside: Float[Array, ""] = eqx.field(
         converter=_checks.leaf("volshade.Focus", "inside"), default=1.0)
     outside: Float[Array, ""] = eqx.field(

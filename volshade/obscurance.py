@@ -995,10 +995,12 @@ class ObscuranceParams(eqx.Module):
         converter=_checks.leaf("volshade.ObscuranceParams", "low"), default=0.0)
     high: Float[Array, ""] = eqx.field(
         converter=_checks.leaf("volshade.ObscuranceParams", "high"), default=1.0)
-    rho: str | Callable[[Array, Array], Array] = eqx.field(static=True, default="sqrt")
-    level: int = eqx.field(static=True, default=1)
-    color_bleeding: bool = eqx.field(static=True, default=False)
-    density: str = eqx.field(static=True, default="opacity")
+    rho: str | Callable[[Array, Array], Array] = eqx.field(
+        static=True, default="sqrt", converter=_checks.python_scalar)
+    level: int = eqx.field(static=True, default=1, converter=_checks.python_scalar)
+    color_bleeding: bool = eqx.field(static=True, default=False,
+                                     converter=_checks.python_scalar)
+    density: str = eqx.field(static=True, default="opacity", converter=_checks.python_scalar)
     smoothing: float = eqx.field(static=True, default=0.0, converter=_static_number)
 
     def __check_init__(self):

@@ -636,10 +636,11 @@ class SaliencyModulation(eqx.Module):
         converter=_checks.leaf("volshade.SaliencyModulation", "threshold"), default=0.2)
     d_max: Float[Array, ""] = eqx.field(
         converter=_checks.leaf("volshade.SaliencyModulation", "d_max"), default=32.0)
-    rho: str | Callable[[Array, Array], Array] = eqx.field(static=True, default="sqrt")
-    level: int = eqx.field(static=True, default=1)
-    size: int = eqx.field(static=True, default=5)
-    multiply: bool = eqx.field(static=True, default=True)
+    rho: str | Callable[[Array, Array], Array] = eqx.field(
+        static=True, default="sqrt", converter=_checks.python_scalar)
+    level: int = eqx.field(static=True, default=1, converter=_checks.python_scalar)
+    size: int = eqx.field(static=True, default=5, converter=_checks.python_scalar)
+    multiply: bool = eqx.field(static=True, default=True, converter=_checks.python_scalar)
     boost_top: float | None = eqx.field(static=True, default=None, converter=_static_number)
     smoothing: float = eqx.field(static=True, default=0.0, converter=_static_number)
 

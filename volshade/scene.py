@@ -176,7 +176,12 @@ class Scene(eqx.Module):
     (``dataclasses.replace(scene, ambient="none")``) drops the defaults the scene filled
     in, and refuses parameters that were given or changed unless they are dropped too
     (``lao=None``); under ``jit``, where a change is not known while tracing, the copy is
-    refused when its render runs (the check rides on ``background``).
+    refused when its render runs (the check rides on ``background``). Which parameters
+    were filled in is static, part of the scene's pytree structure: a scene given
+    ``phong=vs.Phong()`` and one that left it out are different pytrees (not
+    ``eqx.tree_equal``, compiled apart, not stacked for ``jax.vmap`` nor joined by
+    ``lax.cond``); build the scenes of a sweep alike. :func:`render` checks again which
+    effects use what, since a module set with ``eqx.tree_at`` skips the constructor.
 
     The constructor checks types, shapes, options and which effects use what (see
     Raises); values (NaN or inf in ``volume`` or a parameter, out-of-range values)
@@ -333,59 +338,67 @@ class Scene(eqx.Module):
     def __check_init__(self):
         _checks.as_float_array(self.volume, "volume", _WHERE)
         _checks.check_ndim(jnp.asarray(self.volume), 3, "volume", _WHERE, "(D, H, W)")
-        if not isinstance(self.transfer, TransferFunction):
-            raise TypeError(f"{_WHERE}: `transfer` must be a volshade.TransferFunction, "
-                            f"got {type(self.transfer).__name__}.")
-        if self.ambient == "volume" and self.ambient_volume is None:
-            raise ValueError(f"{_WHERE}: ambient='volume' needs `ambient_volume`.")
-        if self.ambient != "volume" and self.ambient_volume is not None:
-            raise ValueError(f"{_WHERE}: `ambient_volume` is used only with "
-                             f"ambient='volume', got ambient={self.ambient!r}; set "
-                             f"ambient='volume' or leave `ambient_volume` out.")
-        if self.ambient_volume is not None:
-            _checks.as_float_array(self.ambient_volume, "ambient_volume", _WHERE)
-            shape, ambient_shape = jnp.shape(self.volume), jnp.shape(self.ambient_volume)
-            if ambient_shape not in (shape, (*shape, 3)):
-                raise ValueError(f"{_WHERE}: `ambient_volume` must have the shape of `volume`, "
-                                 f"{shape} (grey) or {(*shape, 3)} (RGB), got {ambient_shape}.")
-        for name, (kind, stage, users, _) in _PARAMETERS.items():
-            value, option = getattr(self, name), getattr(self, stage)
-            if value is None:
-                if option in users:  # (only feature_ao has no defaults)
-                    raise ValueError(f"{_WHERE}: {stage}={option!r} needs `{name}=` a "
-                                     f"volshade.{kind.__name__}.")
-                continue
-            # a number or a dict in its place would fail only inside the render, unnamed
-            if not isinstance(value, kind):
-                raise TypeError(f"{_WHERE}: `{name}` must be a volshade.{kind.__name__}, "
-                                f"got {type(value).__name__}.")
-            if option not in users:
-                raise ValueError(f"{_WHERE}: {_unused_message(name, stage, option, users)}")
-        if self.focus is not None and not isinstance(self.focus, Focus):
-            raise TypeError(f"{_WHERE}: `focus` must be a volshade.Focus, got "
-                            f"{type(self.focus).__name__}.")
-        if self.focus is not None and self.composition != "importance":
-            raise ValueError(f"{_WHERE}: `focus` needs composition='importance'.")
+        self._check_effects(_WHERE)
         _checks.refuse(None, [(unread.set(), unread.message)
                               for unread in self._unread_leaves().values()], _WHERE,
                        traced=False)
-        if self.clip is not None:
-            if not isinstance(self.clip, Clip):
-                raise TypeError(f"{_WHERE}: `clip` must be a volshade clip shape (e.g. "
-                                f"volshade.SphereClip), got {type(self.clip).__name__}.")
-            if self.ambient in ("feature_ao", "obscurance"):
-                raise ValueError(f"{_WHERE}: ambient={self.ambient!r} does not take `clip` "
-                                 f"into account; compute the ambient volume of the clipped "
-                                 f"volume yourself and pass ambient='volume'.")
-            if self.modulation != "none":
-                raise ValueError(f"{_WHERE}: modulation={self.modulation!r} does not take "
-                                 f"`clip` into account (the saliency would be that of the "
-                                 f"unclipped volume); use modulation='none' with a clip.")
         if jnp.shape(self.background) != (3,):
             raise ValueError(f"{_WHERE}: `background` must be an RGB triple, "
                              f"got shape {jnp.shape(self.background)}.")
         _checks.in_unit_range(self.background, "background", _WHERE, hint=BACKGROUND_HINT,
                               traced=False)
+
+    def _check_effects(self, where: str) -> None:
+        """The transfer function; each effect's parameters present where its stage uses
+        them, of their type, and absent elsewhere; the focus and the clip where they are
+        read. Checked by the constructor and again by :func:`render`: a module set with
+        ``eqx.tree_at`` skipped the constructor (a clip in an obscurance scene rendered
+        unclipped without a word)."""
+        if not isinstance(self.transfer, TransferFunction):
+            raise TypeError(f"{where}: `transfer` must be a volshade.TransferFunction, "
+                            f"got {type(self.transfer).__name__}.")
+        if self.ambient == "volume" and self.ambient_volume is None:
+            raise ValueError(f"{where}: ambient='volume' needs `ambient_volume`.")
+        if self.ambient != "volume" and self.ambient_volume is not None:
+            raise ValueError(f"{where}: `ambient_volume` is used only with "
+                             f"ambient='volume', got ambient={self.ambient!r}; set "
+                             f"ambient='volume' or leave `ambient_volume` out.")
+        if self.ambient_volume is not None:
+            _checks.as_float_array(self.ambient_volume, "ambient_volume", where)
+            shape, ambient_shape = jnp.shape(self.volume), jnp.shape(self.ambient_volume)
+            if ambient_shape not in (shape, (*shape, 3)):
+                raise ValueError(f"{where}: `ambient_volume` must have the shape of `volume`, "
+                                 f"{shape} (grey) or {(*shape, 3)} (RGB), got {ambient_shape}.")
+        for name, (kind, stage, users, _) in _PARAMETERS.items():
+            value, option = getattr(self, name), getattr(self, stage)
+            if value is None:
+                if option in users:  # (only feature_ao has no defaults)
+                    raise ValueError(f"{where}: {stage}={option!r} needs `{name}=` a "
+                                     f"volshade.{kind.__name__}.")
+                continue
+            # a number or a dict in its place would fail only inside the render, unnamed
+            if not isinstance(value, kind):
+                raise TypeError(f"{where}: `{name}` must be a volshade.{kind.__name__}, "
+                                f"got {type(value).__name__}.")
+            if option not in users:
+                raise ValueError(f"{where}: {_unused_message(name, stage, option, users)}")
+        if self.focus is not None and not isinstance(self.focus, Focus):
+            raise TypeError(f"{where}: `focus` must be a volshade.Focus, got "
+                            f"{type(self.focus).__name__}.")
+        if self.focus is not None and self.composition != "importance":
+            raise ValueError(f"{where}: `focus` needs composition='importance'.")
+        if self.clip is not None:
+            if not isinstance(self.clip, Clip):
+                raise TypeError(f"{where}: `clip` must be a volshade clip shape (e.g. "
+                                f"volshade.SphereClip), got {type(self.clip).__name__}.")
+            if self.ambient in ("feature_ao", "obscurance"):
+                raise ValueError(f"{where}: ambient={self.ambient!r} does not take `clip` "
+                                 f"into account; compute the ambient volume of the clipped "
+                                 f"volume yourself and pass ambient='volume'.")
+            if self.modulation != "none":
+                raise ValueError(f"{where}: modulation={self.modulation!r} does not take "
+                                 f"`clip` into account (the saliency would be that of the "
+                                 f"unclipped volume); use modulation='none' with a clip.")
 
     def _unread_leaves(self) -> dict[str, "_Unread"]:
         """Leaves of the effect parameters that this scene's other settings leave unread,
@@ -578,6 +591,7 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
                         f"volshade.Scene(volume=..., transfer=...).")
     _check_cameras(camera)
     scene = _containers_as_arrays(scene, "scene")
+    scene._check_effects("volshade.render")
     camera = (_containers_as_arrays(camera, "camera") if isinstance(camera, Camera) else
               [_containers_as_arrays(cam, f"camera[{i}]") for i, cam in enumerate(camera)])
     scene, camera = _finite_parameters(scene, camera)

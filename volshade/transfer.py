@@ -88,16 +88,23 @@ class TransferFunction(eqx.Module):
                              converter=lambda s: _checks.positive_float(s, "step0", _WHERE))
 
     def __check_init__(self):
+        self._check_shapes()
+        _checks.refuse(self, self._problems(), _WHERE, traced=False)  # traced: when used
+
+    def _check_shapes(self) -> None:
         k = jnp.shape(self.points)
+        # (a batch of transfer functions, stacked for jax.vmap, fails here when used
+        # without it: say so)
+        batch = "; a batch of transfer functions is for jax.vmap" if len(k) > 1 else ""
         if len(k) != 1 or k[0] < 1:
-            raise ValueError(f"{_WHERE}: `points` must be a non-empty 1-D array, got shape {k}.")
+            raise ValueError(f"{_WHERE}: `points` must be a non-empty 1-D array, got shape "
+                             f"{k}{batch}.")
         if jnp.shape(self.colors) != (k[0], 3):
             raise ValueError(f"{_WHERE}: `colors` must have shape ({k[0]}, 3) to match `points`, "
                              f"got {jnp.shape(self.colors)}.")
         if jnp.shape(self.opacities) != k:
             raise ValueError(f"{_WHERE}: `opacities` must have shape {k} to match `points`, "
                              f"got {jnp.shape(self.opacities)}.")
-        _checks.refuse(self, self._problems(), _WHERE, traced=False)  # traced: when used
 
     def _problems(self) -> list[tuple[Array, str]]:
         """``(is_bad, message)`` for the control values: points finite and strictly
@@ -123,7 +130,12 @@ class TransferFunction(eqx.Module):
         (integers and bools as floats: the interpolation runs in the volume's dtype, which
         would truncate every opacity and colour to 0; half precision as float32:
         ``jnp.interp`` refuses it)."""
-        tf = _checks.refuse(self, self._problems(), _WHERE)
+        # leaves set with eqx.tree_at skipped the converters and the shape checks
+        tf = eqx.tree_at(lambda t: (t.points, t.colors, t.opacities), self, tuple(
+            _checks.float_leaf(getattr(self, name), name, _WHERE)
+            for name in ("points", "colors", "opacities")))
+        tf._check_shapes()
+        tf = _checks.refuse(tf, tf._problems(), _WHERE)
         volume = _checks.finite(_checks.as_working_float(volume, "volume", where), "volume",
                                 where)
         # in the volume's dtype, as _interp classifies: float32(0.3) > 0.3 in float64
@@ -312,7 +324,8 @@ class IntervalFeature(eqx.Module):
     def _select(self, volume: Array, base_opacity: Array) -> Array:
         # compared in the volume's dtype, as it is classified: a float32 volume of 0.4
         # lies inside [0.2, 0.4] whatever the dtype the bounds were made in
-        low, high = self.low.astype(volume.dtype), self.high.astype(volume.dtype)
+        # (as arrays: an end set to a Python float with eqx.tree_at has no astype)
+        low, high = (jnp.asarray(end, volume.dtype) for end in (self.low, self.high))
         selected = jnp.where((volume >= low) & (volume <= high), base_opacity, 0)
         return _checks.refuse(selected, [(~_ordered(jnp, self.low, self.high),
                                           "need finite `low` < `high`.")],
