@@ -31,21 +31,29 @@ def time_fn(fn: Callable, *args, repeats: int = 5) -> dict:
 
 
 def time_fns(fns: dict[str, Callable], *args, repeats: int = 5) -> dict[str, dict]:
-    """:func:`time_fn` of each of ``fns`` on the same ``args``, interleaved: every round
-    times each function once, in an order rotated from round to round, so that a
-    shared machine's slow spells fall on all of them alike and their ratio holds (timed
-    one after the other, a bricked/unbricked ratio of about 1 measured 2 in one run).
-    The first calls (compile + run) come before the rounds."""
+    """:func:`time_cases` of ``fns``, each called on the same ``args``."""
+    return time_cases({name: (fn, args) for name, fn in fns.items()}, repeats=repeats)
+
+
+def time_cases(cases: dict[str, tuple[Callable, tuple]], *, repeats: int = 5
+               ) -> dict[str, dict]:
+    """:func:`time_fn` of each case ``name: (fn, args)``, interleaved: every round times
+    each case once, in an order rotated from round to round, so that a shared machine's
+    slow spells fall on all of them alike and their ratios hold (timed one after the
+    other, a bricked/unbricked ratio of about 1 measured 2 in one run, and feature AO
+    against classic LAO 5.7 where interleaved it was 2.9). The first calls (compile +
+    run) come before the rounds."""
     out = {}
-    for name, fn in fns.items():
+    for name, (fn, args) in cases.items():
         t0 = time.perf_counter()
         block(fn(*args))
         out[name] = {"first_call_s": time.perf_counter() - t0, "times_s": []}
-    names = list(fns)
+    names = list(cases)
     for k in range(repeats):
         for name in names[k % len(names):] + names[:k % len(names)]:
+            fn, args = cases[name]
             t0 = time.perf_counter()
-            block(fns[name](*args))
+            block(fn(*args))
             out[name]["times_s"].append(time.perf_counter() - t0)
     for result in out.values():
         result["median_s"] = statistics.median(result["times_s"])

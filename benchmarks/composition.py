@@ -7,9 +7,11 @@ compositor), in one process, the two compositors of each mode timed interleaved.
 Goal: importance <= 1.5x standard.
 
 On a CPU, ``composite`` computes values reading 8 (importance: 4) samples of every ray
-per loop iteration where they lie; the forward rows "(scan)" time the same steps as a
-``lax.scan`` over the samples moved in front (a transpose of the inputs), which is what
-reverse mode and other platforms run, and what the CPU ran before.
+per loop iteration where they lie. The rows "steps in place" and "steps (scan)" time
+the compositing steps alone (no input checks, no finish), four cases interleaved: the
+loop ``composite`` runs on a CPU, and a ``lax.scan`` over the samples moved in front (a
+transpose of the inputs), which is what reverse mode and other platforms run, and what
+the CPU ran before.
 """
 
 import jax
@@ -19,6 +21,7 @@ from benchmarks._timing import time_fns
 from volshade.composition import (
     _samples,
     _scan,
+    _scan_in_place,
     composite,
     importance_init,
     importance_step,
@@ -49,12 +52,22 @@ def run(quick: bool) -> dict:
     def importance_aware(c, a, i):
         return composite(c, a, importance=i, background=bg, background_importance=jnp.float32(0))
 
-    def scan(step, init, c, a, i):
-        return _scan(step, init((n_rays,), jnp.float32), _samples(c, a, i), 1)
+    # the steps alone, as composite runs them: in place (8 and 4 samples an iteration,
+    # composite's chunks on a CPU) and scanned
+    steps = {"standard": (standard_step, standard_init, 8),
+             "importance": (importance_step, importance_init, 4)}
+
+    def in_place(name):
+        step, init, chunk = steps[name]
+        return lambda c, a, i: _scan_in_place(step, chunk, init((n_rays,), jnp.float32), c, a,
+                                              i if name == "importance" else None)
+
+    def scan(name):
+        step, init, _ = steps[name]
+        return lambda c, a, i: _scan(step, init((n_rays,), jnp.float32),
+                                     _samples(c, a, i if name == "importance" else None), 1)
 
     cases = {"standard": standard, "importance": importance_aware}
-    scans = {"standard": lambda c, a, i: scan(standard_step, standard_init, c, a, None),
-             "importance": lambda c, a, i: scan(importance_step, importance_init, c, a, i)}
     rows, medians = [], {}
     n_total = n_rays * n_samples
 
@@ -62,14 +75,16 @@ def run(quick: bool) -> dict:
         argnums = (0, 1) if name == "standard" else (0, 1, 2)
         return jax.jit(jax.grad(lambda c, a, i: jnp.sum(fn(c, a, i)), argnums=argnums))
 
-    # the two compositors of each mode timed interleaved (benchmarks._timing.time_fns)
-    modes = {"forward": lambda name, fn: jax.jit(fn),
-             "forward (scan)": lambda name, fn: jax.jit(scans[name]),
-             "forward+grad": gradient}
-    for mode, make in modes.items():
-        timed = time_fns({name: make(name, fn) for name, fn in cases.items()}, colors, alphas,
-                         importance, repeats=repeats)
-        for name, t in timed.items():
+    # the cases of each group timed interleaved (benchmarks._timing.time_fns)
+    groups = {"forward": {(name, "forward"): jax.jit(fn) for name, fn in cases.items()},
+              "forward+grad": {(name, "forward+grad"): gradient(name, fn)
+                               for name, fn in cases.items()},
+              "steps": {(name, mode): jax.jit(make(name)) for name in cases
+                        for mode, make in (("steps in place", in_place),
+                                           ("steps (scan)", scan))}}
+    for fns in groups.values():
+        timed = time_fns(fns, colors, alphas, importance, repeats=repeats)
+        for (name, mode), t in timed.items():
             medians[(name, mode)] = t["median_s"]
             rows.append({"case": f"{name} {mode}", "median_s": t["median_s"],
                          "first_call_s": t["first_call_s"],
@@ -79,12 +94,12 @@ def run(quick: bool) -> dict:
         / medians[("standard", "forward")],
         "importance/standard forward+grad": medians[("importance", "forward+grad")]
         / medians[("standard", "forward+grad")],
-        "importance/standard forward (scan)": medians[("importance", "forward (scan)")]
-        / medians[("standard", "forward (scan)")],
-        "scan/composite standard forward": medians[("standard", "forward (scan)")]
-        / medians[("standard", "forward")],
-        "scan/composite importance forward": medians[("importance", "forward (scan)")]
-        / medians[("importance", "forward")],
+        "importance/standard steps (scan)": medians[("importance", "steps (scan)")]
+        / medians[("standard", "steps (scan)")],
+        "scan/in place, standard steps": medians[("standard", "steps (scan)")]
+        / medians[("standard", "steps in place")],
+        "scan/in place, importance steps": medians[("importance", "steps (scan)")]
+        / medians[("importance", "steps in place")],
     }
     return {
         "title": "importance-aware vs standard compositing (volshade.composite, float32)",
@@ -92,8 +107,8 @@ def run(quick: bool) -> dict:
         "rows": rows,
         "ratios": ratios,
         "notes": "same rays for both, all rays per step; on a CPU composite reads 8 "
-                 "(importance: 4) samples per iteration in place, '(scan)' rows scan the "
-                 "samples moved in front "
-                 "(without composite's input checks); goal importance/standard <= 1.5; "
+                 "(importance: 4) samples per iteration in place; the 'steps' rows time "
+                 "the steps alone (no input checks, no finish), in place and scanned over "
+                 "the samples moved in front; goal importance/standard <= 1.5; "
                  "GPU goal 512^2 x 512 forward <= 10 ms (H100).",
     }

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 import volshade as vs
-from benchmarks._timing import time_fn
+from benchmarks._timing import time_cases
 from volshade.feature_ao import MERGES
 from volshade.lao import _active_bricks
 
@@ -49,35 +49,38 @@ def _datasets(n: int) -> dict:
             "bucky": (vs.data.phantom("bucky", shape=n), bucky_tf, bucky)}
 
 
-def _measure(name, vol, tf, features, *, n, directions, radius, samples, brick, row,
-             ratios):
-    """The rows and ratios of one dataset (a function, so closures bind its values)."""
+def _measure(name, vol, tf, features, *, n, directions, radius, samples, brick, repeats,
+             rows, ratios):
+    """The rows and ratios of one dataset (a function, so closures bind its values); its
+    cases are timed interleaved, so that their ratios hold on a shared machine."""
     lao_kw = dict(directions=directions, radius=radius, samples=samples)
     pad = _pad(radius)
     feature_alphas = vs.transfer.feature_opacities(vol, features, base=tf)
     occupied = [float(jnp.mean(a > 0)) for a in feature_alphas]
-    tag = f"{name} {n}^3 ({len(features)} features)"
-    # every LAO row starts from the volume, as feature_ao does: the classification is
-    # part of the work on both sides of the ratios
-    t_classic = row(f"{tag}: classic LAO", lambda v: vs.lao(tf.opacity(v), **lao_kw), vol)
-    t_each = [row(f"{tag}: feature {k} LAO alone ({100 * occ:.1f}% of voxels)",
-                  lambda v, f=f: vs.lao(f.opacity(v, tf), **lao_kw), vol)
-              for k, (f, occ) in enumerate(zip(features, occupied, strict=True))]
     per_feature = jnp.stack([vs.lao(a, **lao_kw) for a in feature_alphas])
-    t_merge = {m: row(f"{tag}: merge {m}",
-                      lambda ao, op, m=m: vs.merge_feature_ao(ao, op, merge=m),
-                      per_feature, feature_alphas) for m in MERGES}
-    t_fao = row(f"{tag}: feature_ao (max)",
-                lambda v: vs.feature_ao(v, features=features, base=tf, **lao_kw), vol)
-    t_bricked = row(f"{tag}: feature_ao (max), bricks of {brick}",
-                    lambda v: vs.feature_ao(v, features=features, base=tf, **lao_kw,
-                                            brick_size=brick), vol)
-    t_structure = row(f"{tag}: brick structures (all features)",
-                      lambda fa: jnp.stack([_active_bricks(a, pad, brick)
-                                            for a in fa]), feature_alphas)
+    tag = f"{name} {n}^3 ({len(features)} features)"
+    cases = {}
 
-    def grad_of(loss):
-        return jax.grad(loss, argnums=(0, 1))
+    def case(key, label, fn, *args):
+        cases[key] = (label, jax.jit(fn), args)
+
+    # every LAO case starts from the volume, as feature_ao does: the classification is
+    # part of the work on both sides of the ratios
+    case("classic", "classic LAO", lambda v: vs.lao(tf.opacity(v), **lao_kw), vol)
+    for k, (f, occ) in enumerate(zip(features, occupied, strict=True)):
+        case(("each", k), f"feature {k} LAO alone ({100 * occ:.1f}% of voxels)",
+             lambda v, f=f: vs.lao(f.opacity(v, tf), **lao_kw), vol)
+    for m in MERGES:
+        case(("merge", m), f"merge {m}",
+             lambda ao, op, m=m: vs.merge_feature_ao(ao, op, merge=m),
+             per_feature, feature_alphas)
+    case("fao", "feature_ao (max)",
+         lambda v: vs.feature_ao(v, features=features, base=tf, **lao_kw), vol)
+    case("bricked", f"feature_ao (max), bricks of {brick}",
+         lambda v: vs.feature_ao(v, features=features, base=tf, **lao_kw, brick_size=brick),
+         vol)
+    case("structure", "brick structures (all features)",
+         lambda fa: jnp.stack([_active_bricks(a, pad, brick) for a in fa]), feature_alphas)
 
     def classic_loss(r, opacities, v):
         base = vs.TransferFunction(tf.points, tf.colors, opacities)
@@ -90,31 +93,37 @@ def _measure(name, vol, tf, features, *, n, directions, radius, samples, brick, 
                                      radius=r, samples=samples, max_radius=2 * radius))
 
     r0 = jnp.float32(radius)
-    t_classic_grad = row(f"{tag}: classic LAO forward+grad (radius, TF opacities)",
-                         grad_of(classic_loss), r0, tf.opacities, vol)
-    t_fao_grad = row(f"{tag}: feature_ao forward+grad (radius, TF opacities)",
-                     grad_of(feature_loss), r0, tf.opacities, vol)
+    case("classic grad", "classic LAO forward+grad (radius, TF opacities)",
+         jax.grad(classic_loss, argnums=(0, 1)), r0, tf.opacities, vol)
+    case("fao grad", "feature_ao forward+grad (radius, TF opacities)",
+         jax.grad(feature_loss, argnums=(0, 1)), r0, tf.opacities, vol)
     # the paper's R = 16 reaches nearly every brick of these phantoms; a short reach
     # leaves the empty ones out
     short = dict(lao_kw, radius=4.0)
     active = [float(jnp.mean(_active_bricks(a, _pad(short["radius"]), brick)))
               for a in feature_alphas]
-    t_short = row(f"{tag}: feature_ao (max), R = 4",
-                  lambda v: vs.feature_ao(v, features=features, base=tf, **short), vol)
-    t_short_bricked = row(
-        f"{tag}: feature_ao (max), R = 4, bricks of {brick} "
-        f"({', '.join(f'{100 * a:.0f}%' for a in active)} active)",
-        lambda v: vs.feature_ao(v, features=features, base=tf, **short, brick_size=brick),
-        vol)
-    ratios[f"{name}: bricked / unbricked feature_ao, R = 4"] = t_short_bricked / t_short
-    ratios[f"{name}: feature_ao / classic LAO"] = t_fao / t_classic
-    ratios[f"{name}: feature_ao / sum of feature LAOs"] = t_fao / sum(t_each)
-    ratios[f"{name}: max merge / classic LAO"] = t_merge["max"] / t_classic
-    ratios[f"{name}: neighbourhood merge / classic LAO"] = (t_merge["neighbourhood"]
-                                                            / t_classic)
-    ratios[f"{name}: bricked / unbricked feature_ao"] = t_bricked / t_fao
-    ratios[f"{name}: brick structures / feature_ao"] = t_structure / t_fao
-    ratios[f"{name}: forward+grad, feature_ao / classic"] = t_fao_grad / t_classic_grad
+    case("short", "feature_ao (max), R = 4",
+         lambda v: vs.feature_ao(v, features=features, base=tf, **short), vol)
+    case("short bricked", f"feature_ao (max), R = 4, bricks of {brick} "
+                          f"({', '.join(f'{100 * a:.0f}%' for a in active)} active)",
+         lambda v: vs.feature_ao(v, features=features, base=tf, **short, brick_size=brick),
+         vol)
+    timed = time_cases({key: (fn, args) for key, (_, fn, args) in cases.items()},
+                       repeats=repeats)
+    for key, (label, _, _) in cases.items():
+        rows.append({"case": f"{tag}: {label}", "median_s": timed[key]["median_s"],
+                     "first_call_s": timed[key]["first_call_s"]})
+    t = {key: timing["median_s"] for key, timing in timed.items()}
+    each = sum(t[("each", k)] for k in range(len(features)))
+    ratios[f"{name}: bricked / unbricked feature_ao, R = 4"] = t["short bricked"] / t["short"]
+    ratios[f"{name}: feature_ao / classic LAO"] = t["fao"] / t["classic"]
+    ratios[f"{name}: feature_ao / sum of feature LAOs"] = t["fao"] / each
+    ratios[f"{name}: max merge / classic LAO"] = t[("merge", "max")] / t["classic"]
+    ratios[f"{name}: neighbourhood merge / classic LAO"] = (t[("merge", "neighbourhood")]
+                                                            / t["classic"])
+    ratios[f"{name}: bricked / unbricked feature_ao"] = t["bricked"] / t["fao"]
+    ratios[f"{name}: brick structures / feature_ao"] = t["structure"] / t["fao"]
+    ratios[f"{name}: forward+grad, feature_ao / classic"] = t["fao grad"] / t["classic grad"]
 
 
 def run(quick: bool) -> dict:
@@ -123,15 +132,9 @@ def run(quick: bool) -> dict:
     radius, samples, brick = 16.0, 16, 8
     directions = vs.directions.random_polar(16, key=jax.random.key(0)).astype(jnp.float32)
     rows, ratios = [], {}
-
-    def row(case, fn, *args):
-        t = time_fn(jax.jit(fn), *args, repeats=repeats)
-        rows.append({"case": case, "median_s": t["median_s"], "first_call_s": t["first_call_s"]})
-        return t["median_s"]
-
     for name, (vol, tf, features) in _datasets(n).items():
         _measure(name, vol, tf, features, n=n, directions=directions, radius=radius,
-                 samples=samples, brick=brick, row=row, ratios=ratios)
+                 samples=samples, brick=brick, repeats=repeats, rows=rows, ratios=ratios)
     return {
         "title": "feature-driven AO vs classic LAO (Ancel et al. 2010, Tables 2-3), float32",
         "sizes": {"volumes": f"orange and bucky phantoms, {n}^3",

@@ -37,6 +37,7 @@ from volshade.render import n_samples
 from volshade.saliency import saliency
 
 from ._timing import report, report_ratios, time_fn
+from .render import BUDGET_NOTE
 
 
 def _agreement() -> list[dict]:
@@ -207,4 +208,5 @@ def _render_section(sizes: dict, rows: list, ratios: dict) -> None:
         t = time_fn(eqx.filter_jit(vs.render), scene, cam, repeats=sizes["repeats"])
         work = px * px * n_samples(vol.shape, (1, 1, 1), 1.0)
         report(rows, {"case": f"render {px}^2 over {n}^3, shading={shading}",
-                      "median_s": t["median_s"], "Gsamples_per_s": work / t["median_s"] / 1e9})
+                      "median_s": t["median_s"], "Gsamples_per_s": work / t["median_s"] / 1e9,
+                      "note": BUDGET_NOTE})

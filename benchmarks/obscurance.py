@@ -30,7 +30,7 @@ from volshade.obscurance import (
     obscurance,
 )
 
-from ._timing import time_fn
+from ._timing import time_cases
 
 
 def _march(density, dirs, d_max: int):
@@ -79,33 +79,32 @@ def run(quick: bool) -> dict:
         dirs = icosphere(level)
         return jax.jit(lambda v, dm: obscurance(v, directions=dirs, d_max=dm, rho="sqrt"))
 
-    by_dirs = {}
-    for level, count in ((0, 12), (1, 42), (2, 162)):
-        timing = time_fn(fast(level), vol, jnp.float32(64.0), repeats=repeats)
-        by_dirs[count] = timing["median_s"]
-        rows.append({"case": f"dirs={count} d_max=64", "median_s": timing["median_s"],
-                     "first_call_s": timing["first_call_s"]})
-    by_dmax = {}
-    f42 = fast(1)
+    # every case timed interleaved with the others, so that their ratios hold on a
+    # shared machine
+    dirs12, f12, f42 = icosphere(0), fast(0), fast(1)
+    # (12 and 42 directions at d_max = 64 are among the d_max cases)
+    cases = {"dirs=162 d_max=64": (fast(2), (vol, jnp.float32(64.0)))}
+    marches = {}
     for d_max in (8, 64, 256):
-        timing = time_fn(f42, vol, jnp.float32(d_max), repeats=repeats)
-        by_dmax[d_max] = timing["median_s"]
-        rows.append({"case": f"dirs=42 d_max={d_max}", "median_s": timing["median_s"],
-                     "first_call_s": timing["first_call_s"]})
-    by_march, by_fast12 = {}, {}
-    dirs12 = icosphere(0)
-    f12 = fast(0)
-    for d_max in (8, 64, 256):
-        timing = time_fn(f12, vol, jnp.float32(d_max), repeats=repeats)
-        by_fast12[d_max] = timing["median_s"]
-        rows.append({"case": f"dirs=12 d_max={d_max}", "median_s": timing["median_s"],
-                     "first_call_s": timing["first_call_s"]})
-        march = jax.jit(lambda v, d_max=d_max: _march(v, dirs12, d_max))
-        timing = time_fn(march, vol, repeats=repeats)
-        difference = float(jnp.max(jnp.abs(march(vol) - f12(vol, jnp.float32(d_max)))))
-        by_march[d_max] = timing["median_s"]
-        rows.append({"case": f"march dirs=12 d_max={d_max}", "median_s": timing["median_s"],
-                     "first_call_s": timing["first_call_s"], "max_abs_diff_vs_fast": difference})
+        cases[f"dirs=42 d_max={d_max}"] = (f42, (vol, jnp.float32(d_max)))
+        cases[f"dirs=12 d_max={d_max}"] = (f12, (vol, jnp.float32(d_max)))
+        marches[d_max] = jax.jit(lambda v, d_max=d_max: _march(v, dirs12, d_max))
+        cases[f"march dirs=12 d_max={d_max}"] = (marches[d_max], (vol,))
+    timed = time_cases(cases, repeats=repeats)
+    for name, timing in timed.items():
+        row = {"case": name, "median_s": timing["median_s"],
+               "first_call_s": timing["first_call_s"]}
+        if name.startswith("march"):
+            d_max = int(name.rsplit("=", 1)[1])
+            row["max_abs_diff_vs_fast"] = float(jnp.max(jnp.abs(
+                marches[d_max](vol) - f12(vol, jnp.float32(d_max)))))
+        rows.append(row)
+    t = {name: timing["median_s"] for name, timing in timed.items()}
+    by_dirs = {12: t["dirs=12 d_max=64"], 42: t["dirs=42 d_max=64"],
+               162: t["dirs=162 d_max=64"]}
+    by_dmax = {d: t[f"dirs=42 d_max={d}"] for d in (8, 64, 256)}
+    by_fast12 = {d: t[f"dirs=12 d_max={d}"] for d in (8, 64, 256)}
+    by_march = {d: t[f"march dirs=12 d_max={d}"] for d in (8, 64, 256)}
     return {
         "title": f"obscurance (sparse-table search) on a random {n}^3 float32 volume",
         "sizes": {"volume": [n, n, n], "directions": [12, 42, 162], "d_max": [8, 64, 256]},

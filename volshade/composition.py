@@ -559,11 +559,12 @@ def _values(step: Callable, chunk: int, state: Any, colors: Array, alphas: Array
     """``step`` over the samples of every ray, values only.
 
     A ``lax.scan`` needs the samples in front, ``(S, ...)``: a transpose of the inputs,
-    which on a CPU cost far more than standard compositing itself (16384 rays x 256
-    samples: 43 ms, against 8.5 ms for the same steps reading 8 samples per iteration in
-    place, :func:`_scan_in_place`; importance-aware compositing, whose steps cost more,
-    gains less: 90 against 72 ms, with ``chunk`` 4, which compiles in half the time of 8
-    for the same speed). On a CPU the samples are read in place; elsewhere the
+    which on a CPU costs more than standard compositing itself (16384 rays x 256
+    samples, the steps alone timed interleaved, ``benchmarks.run composition --quick``
+    on a 2-core CPU: 60 ms, against 19 ms for the same steps reading 8 samples per
+    iteration in place, :func:`_scan_in_place`). Importance-aware compositing, whose
+    steps cost more, gains nothing there: 128 ms in place (``chunk`` 4) against 123 ms
+    scanned. On a CPU the samples are read in place; elsewhere the
     scan, ``unroll`` samples per iteration, is kept as it was timed (on an H200). Reverse
     mode through the in-place loop would accumulate the inputs' cotangents slice by slice
     (222 against 180 ms), so derivatives always go through the scan.

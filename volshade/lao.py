@@ -170,8 +170,10 @@ def _blend_corners(frac, values: list, *, exact: bool) -> Array:
     correction needs that: its slope $r (1 - \alpha)^{r - 1}$ is singular at 1 for
     $r < 1$ (about 1e8 in float64 a few ulps below it, 0 by convention at 1), while
     uncorrected opacities enter the march linearly, and the weighted sum costs fewer
-    instructions (27.1 against 31.8 per voxel and sample in the Pallas forward kernel's
-    sm_90a SASS, the GPU goal's case).
+    instructions (27.1 against 31.8 per voxel and sample in the sm_90a SASS of an earlier
+    version of the Pallas forward kernel, the GPU goal's case; the current kernel's
+    weighted sum takes 30.1, ``docs/results/pallas_sass_sm90a.json``, which holds no
+    nested-lerp row).
     """
     if not exact:
         return _weighted_sum([w for _, w in _corner_weights(frac)], values)
