@@ -29,7 +29,7 @@ from jax.scipy.ndimage import map_coordinates
 import volshade.directions as vdirs
 from volshade.lao import _active_bricks, lao
 
-from ._timing import fit_exponent, report, report_ratios, time_fn, time_fns
+from ._timing import fit_exponent, report, report_ratios, time_cases, time_fn, time_fns
 
 
 def _shells(n: int) -> jax.Array:
@@ -116,17 +116,18 @@ def run(quick: bool) -> dict:
     # scaling with voxels * L * M
     scale_cases = ([(48, 8), (64, 8), (96, 8), (64, 4), (64, 16)] if quick
                    else [(64, 16), (96, 16), (128, 16), (128, 8), (128, 32)])
+    # (interleaved: a slow spell on one size would bend the fitted exponent)
+    timed = time_cases({
+        (n, n_l): (_fast(vdirs.fibonacci(n_l).astype(jnp.float32), samples,
+                         max_radius=radius), (_shells(n), r32))
+        for n, n_l in scale_cases}, repeats=repeats)
     works, times = [], []
-    for n, n_l in scale_cases:
-        a = _shells(n)
-        f = _fast(vdirs.fibonacci(n_l).astype(jnp.float32), samples, max_radius=radius)
-        t = time_fn(f, a, r32, repeats=repeats)
-        w = a.size * n_l * samples
-        works.append(w)
+    for (n, n_l), t in timed.items():
+        works.append(n**3 * n_l * samples)
         times.append(t["median_s"])
         rows.append({"case": f"scaling {n}^3 L{n_l} M{samples}", "median_s": t["median_s"],
                      "first_call_s": t["first_call_s"],
-                     **_rates(a.size, n_l, samples, t["median_s"])})
+                     **_rates(n**3, n_l, samples, t["median_s"])})
     ratios["time_vs_work_exponent"] = fit_exponent(works, times)
 
     # forward + gradient (w.r.t. opacity and radius) vs forward

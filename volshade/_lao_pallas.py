@@ -104,10 +104,15 @@ class Launch(NamedTuple):
     kernels 33 (chunk starts), 59 (cotangents: 255 registers, 4 bytes spilled) and 38
     (adjoint); with opacity correction the forward takes 100 and the cotangents 222
     (255 registers, no spill; ``(2, 8, 32)`` and ``(1, 8, 64)`` spill 1228 and 1276
-    bytes there). Timings need a GPU: ``python -m benchmarks.run lao_pallas``.
+    bytes there, in an earlier run whose record was not kept; the recorded run,
+    ``docs/results/pallas_sass_sm90a.json``, holds the rest). Timings need a GPU:
+    ``python -m benchmarks.run lao_pallas``.
 
     Timed on an H200 (JAX 0.11.2, 2026-12-04; $512^3$, $L = 54$, $M = 50$, $R = 50$,
-    no opacity correction unless said). Forward, in one run: tile ``(4, 4, 64)``
+    no opacity correction unless said). Only one run is on record,
+    ``docs/results/lao_pallas_h200.json`` (the forward tiles and the default's 4.74 s
+    below); the figures of the other runs were read from their output at the time, and
+    their records were not kept. Forward, in one run: tile ``(4, 4, 64)``
     0.579 s (0.63 T samples/s), ``(4, 8, 32)`` 0.615 s, ``(2, 8, 64)`` 0.644 s,
     ``(4, 4, 64)`` with 8 warps 0.730 s, with ``vector = 1`` 0.830 s; in others,
     ``(8, 4, 32)`` as ``(4, 8, 32)``, ``(2, 16, 32)`` 0.68 s, ``(2, 8, 32)`` 0.72 s,

@@ -63,9 +63,10 @@ available through the custom VJP (optimistix least-squares solvers then need
 gradients, as Pallas (Triton) kernels in which one program marches all rays of a
 tile of voxels in registers (``volshade._lao_pallas``). On an H200 (JAX 0.11.2,
 $512^3$, $L = 54$, $M = 50$, $R = 50$; ``python -m benchmarks.run lao_pallas``) it
-marched 0.63 T samples/s against the XLA march's 0.23 T (0.58 s against 1.59 s),
-and forward plus the gradient w.r.t. opacity and radius took 4.7 s against 14.5 s,
-with the same values (2.4e-7) and gradients (1.3e-5 relative). It stays opt-in:
+marched 0.63 T samples/s against the XLA march's 0.23 T (0.58 s against 1.59 s, in
+one run), and forward plus the gradient w.r.t. opacity and radius took 4.7 s, 8.2x its
+forward (the XLA march's took 14.5 s, 9.1x, in another run on an H200), with the
+same values (2.4e-7) and gradients (1.3e-5 relative). It stays opt-in:
 it holds four padded copies of the volume (the XLA forward, about three volumes in
 all), 29 volumes in reverse mode against 22.5, and Pallas' Triton backend is
 deprecated from JAX 0.11 in favour of Mosaic GPU.
@@ -936,8 +937,9 @@ def _one_at_a_time(fn):
     marches only its own active bricks: ``vmap`` of a ``lax.cond`` with a batched
     predicate runs both branches, the plain march of the whole volume as well as the
     bricks. Measured on 2 CPU cores, float32, 16 rays of 16 samples, R = 8, bricks of
-    16: three sparse 96^3 volumes vmapped took 0.06 s instead of 0.49 s (0.20 s
-    unbricked; ``python -m benchmarks.run lao --quick``).
+    16: three sparse 96^3 volumes vmapped took 0.06 s where a batched cond took 0.49 s
+    (0.20 s unbricked), when this was written; now 0.11 s against 0.28 s unbricked,
+    2.5x (``python -m benchmarks.run lao --quick``, ``docs/results/bench_cpu_lao.json``).
 
     The loop (``jax.custom_batching.sequential_vmap``) has no derivative of its own, so
     ``fn``'s reverse-mode gradient is given as a custom VJP that runs ``fn`` again for
