@@ -427,7 +427,9 @@ def _forward_by_reverse(fn: Callable[[Any, Any], Any]) -> Callable[[Any, Any], A
     mode, and optimistix's reverse-mode Jacobian (``jac="bwd"``) is ``jax.jacrev``:
     one VJP per residual, vmapped, which asked for 25.8 GB for two 40 x 40 views of a
     31 x 37 x 31 head. With this rule a solver builds the Jacobian with one
-    transposed VJP per parameter, and a minimiser's gradient is one VJP."""
+    transposed VJP per parameter, and a minimiser's gradient is one VJP. (A transposed
+    scan stores the non-linear values of every iteration: LAO's backward pass
+    checkpoints its recomputations so that they are recomputed there as well.)"""
 
     @jax.custom_jvp
     def wrapped(data, y):
