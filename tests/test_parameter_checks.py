@@ -699,6 +699,13 @@ def test_modules_set_with_tree_at_are_checked_where_they_are_used():
     interval = vs.IntervalFeature(0.2, 0.6)
     np.testing.assert_array_equal(
         eqx.tree_at(lambda f: f.low, interval, 0.2).opacity(VOL, TF), interval.opacity(VOL, TF))
+    # tuples where arrays go, used by the modules' own methods (the render converts them)
+    focus = vs.Focus(center=(0.4, 0.6))
+    np.testing.assert_array_equal(
+        eqx.tree_at(lambda f: f.center, focus, (0.4, 0.6)).weights((8, 8)), focus.weights((8, 8)))
+    for got, want in zip(eqx.tree_at(lambda c: c.eye, cam, tuple(np.asarray(cam.eye).tolist()))
+                         .rays(), cam.rays(), strict=True):
+        np.testing.assert_array_equal(got, want)
     # the scene's structure, as the constructor checks it
     clip = vs.SphereClip(center=(6.0, 6.0, 6.0), radius=3.0)
     lit = vs.Scene(volume=VOL, transfer=TF, shading="phong")

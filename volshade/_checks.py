@@ -93,6 +93,14 @@ def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
     return arr
 
 
+def float_leaves(module: Any, names: tuple[str, ...], where: str) -> Any:
+    """``module`` with its fields ``names`` made float arrays (:func:`float_leaf`): set
+    with ``eqx.tree_at``, a field skipped its converter and may be a Python number, a
+    tuple or a list."""
+    return eqx.tree_at(lambda m: tuple(getattr(m, name) for name in names), module,
+                       tuple(float_leaf(getattr(module, name), name, where) for name in names))
+
+
 def _default_float(arr: Array) -> Array:
     """An integer (or bool) array in the default float dtype. A Python int (a weakly typed
     array) stays weakly typed, as a Python float does: ``radius=2`` then computes and

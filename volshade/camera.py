@@ -305,8 +305,10 @@ class Camera(eqx.Module):
         the camera's dtype, float32 at least (a half-precision pixel grid and basis
         would misplace the rays by a whole pixel)."""
         h, w = self.image_shape
+        camera = _checks.float_leaves(self, ("eye", "target", "up", "fov", "width"),
+                                      "volshade.Camera")
         camera = jax.tree.map(lambda x: _checks.as_working_float(x, "camera", "volshade.Camera"),
-                              self._valid())
+                              camera._valid())
         forward, right, up = camera.basis()
         dtype = forward.dtype
         y = 1 - 2 * (jnp.arange(h, dtype=dtype) + 0.5) / h

@@ -732,19 +732,22 @@ class Focus(eqx.Module):
 
     def weights(self, image_shape: tuple[int, int]) -> Float[Array, "H W"]:
         """Per-ray weights for an image of ``image_shape`` (:func:`focus_weights`)."""
+        # (fields set with eqx.tree_at, e.g. a tuple centre, skipped the converters)
+        focus = _checks.float_leaves(self, ("center", "radius", "inside", "outside"),
+                                     "volshade.Focus")
         for name, shape in (("center", (2,)), ("radius", ()), ("inside", ()), ("outside", ())):
-            if jnp.shape(getattr(self, name)) != shape:
+            if jnp.shape(getattr(focus, name)) != shape:
                 raise ValueError(f"volshade.Focus: `{name}` must have shape {shape}, got "
-                                 f"{jnp.shape(getattr(self, name))}; for several foci, build "
+                                 f"{jnp.shape(getattr(focus, name))}; for several foci, build "
                                  f"each Focus inside jax.vmap, e.g. jax.vmap(lambda r: "
                                  f"Focus(radius=r).weights(shape))(radii).")
         h, w = image_shape
-        dtype = jnp.result_type(self.center, self.radius, self.inside, self.outside)
-        center = _checks.refuse(self.center, [self._center_problem()], "volshade.Focus")
+        dtype = jnp.result_type(focus.center, focus.radius, focus.inside, focus.outside)
+        center = _checks.refuse(focus.center, [focus._center_problem()], "volshade.Focus")
         # in pixels in float32 at least: bfloat16 keeps 8 significant bits, so a
         # centre past 128 px would be rounded to half a pixel or more
         center, radius = (_checks.as_working_float(x, name, "volshade.Focus")
-                          for x, name in ((center, "center"), (self.radius, "radius")))
+                          for x, name in ((center, "center"), (focus.radius, "radius")))
         center = center * jnp.asarray([h, w], center.dtype) - 0.5
-        return focus_weights(image_shape, center=center, radius=radius * h, kind=self.kind,
-                             inside=self.inside, outside=self.outside, dtype=dtype)
+        return focus_weights(image_shape, center=center, radius=radius * h, kind=focus.kind,
+                             inside=focus.inside, outside=focus.outside, dtype=dtype)

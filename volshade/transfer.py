@@ -131,9 +131,7 @@ class TransferFunction(eqx.Module):
         would truncate every opacity and colour to 0; half precision as float32:
         ``jnp.interp`` refuses it)."""
         # leaves set with eqx.tree_at skipped the converters and the shape checks
-        tf = eqx.tree_at(lambda t: (t.points, t.colors, t.opacities), self, tuple(
-            _checks.float_leaf(getattr(self, name), name, _WHERE)
-            for name in ("points", "colors", "opacities")))
+        tf = _checks.float_leaves(self, ("points", "colors", "opacities"), _WHERE)
         tf._check_shapes()
         tf = _checks.refuse(tf, tf._problems(), _WHERE)
         volume = _checks.finite(_checks.as_working_float(volume, "volume", where), "volume",
