@@ -40,9 +40,10 @@ def time_cases(cases: dict[str, tuple[Callable, tuple]], *, repeats: int = 5
     """:func:`time_fn` of each case ``name: (fn, args)``, interleaved: every round times
     each case once, in an order rotated from round to round, so that a shared machine's
     slow spells fall on all of them alike and their ratios hold (timed one after the
-    other, a bricked/unbricked ratio of about 1 measured 2 in one run, and feature AO
-    against classic LAO 5.7 where interleaved it was 2.9). The first calls (compile +
-    run) come before the rounds."""
+    other, a bricked/unbricked ratio of about 1 measured 2 in one run, and a review
+    measured feature AO against classic LAO at 5.7 in one run, 2.9 interleaved minutes
+    later: the orange at 64^3). The first calls (compile + run) come before the
+    rounds."""
     out = {}
     for name, (fn, args) in cases.items():
         t0 = time.perf_counter()

@@ -19,6 +19,8 @@ import jax.numpy as jnp
 
 from benchmarks._timing import time_fns
 from volshade.composition import (
+    IMPORTANCE_CHUNK,
+    STANDARD_CHUNK,
     _samples,
     _scan,
     _scan_in_place,
@@ -52,10 +54,10 @@ def run(quick: bool) -> dict:
     def importance_aware(c, a, i):
         return composite(c, a, importance=i, background=bg, background_importance=jnp.float32(0))
 
-    # the steps alone, as composite runs them: in place (8 and 4 samples an iteration,
-    # composite's chunks on a CPU) and scanned
-    steps = {"standard": (standard_step, standard_init, 8),
-             "importance": (importance_step, importance_init, 4)}
+    # the steps alone, as composite runs them: in place (composite's chunks on a CPU)
+    # and scanned
+    steps = {"standard": (standard_step, standard_init, STANDARD_CHUNK),
+             "importance": (importance_step, importance_init, IMPORTANCE_CHUNK)}
 
     def in_place(name):
         step, init, chunk = steps[name]

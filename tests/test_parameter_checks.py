@@ -696,6 +696,14 @@ def test_modules_set_with_tree_at_are_checked_where_they_are_used():
             vs.render(eqx.tree_at(lambda s: s.transfer, VOL_SCENE, tf), CAM)
     listed = eqx.tree_at(lambda t: t.opacities, TF, np.asarray(TF.opacities).tolist())
     np.testing.assert_array_equal(listed.opacity(VOL), TF.opacity(VOL))
+    # a feature's transfer function too, which feature AO checks against the volume first
+    stacked = eqx.tree_at(lambda t: t.points, TF, jnp.stack([TF.points] * 2))
+    listed_points = eqx.tree_at(lambda t: t.points, TF, np.asarray(TF.points).tolist())
+    with pytest.raises(ValueError, match="a batch of transfer functions is for jax.vmap"):
+        vs.feature_ao(VOL, features=[stacked], directions=4, radius=2.0, samples=4)
+    np.testing.assert_array_equal(
+        vs.feature_ao(VOL, features=[listed_points], directions=4, radius=2.0, samples=4),
+        vs.feature_ao(VOL, features=[TF], directions=4, radius=2.0, samples=4))
     interval = vs.IntervalFeature(0.2, 0.6)
     np.testing.assert_array_equal(
         eqx.tree_at(lambda f: f.low, interval, 0.2).opacity(VOL, TF), interval.opacity(VOL, TF))
@@ -716,8 +724,8 @@ def test_modules_set_with_tree_at_are_checked_where_they_are_used():
              "`lao` is used only with ambient='lao'"),
             (lit, lambda s: s.focus, vs.Focus(), ValueError,
              "`focus` needs composition='importance'"),
-            (lit, lambda s: s.phong, vs.Importance(), TypeError,
-             "`phong` must be a volshade.Phong, got Importance")]:
+            (vs.Scene(volume=VOL, transfer=TF, ambient="lao"), lambda s: s.lao, vs.Phong(),
+             TypeError, "`lao` must be a volshade.LocalAmbientOcclusion, got Phong")]:
         with pytest.raises(exc, match=f"volshade.render: {re.escape(match)}"):
             vs.render(eqx.tree_at(where, scene, value, is_leaf=lambda x: x is None), CAM)
 
@@ -731,12 +739,18 @@ def test_numpy_scalars_in_static_fields_become_python_values(recwarn):
                "merge": vs.FeatureAmbientOcclusion([TF], merge=np.str_("feature")),
                "projection": vs.Camera(eye=(0.0, 3.0, 0.0), target=(0.0, 0.0, 0.0),
                                        up=(1.0, 0.0, 0.0), fov=30.0, width=1.2,
-                                       projection=np.str_("perspective"))}
+                                       projection=np.str_("perspective")),
+               "image_shape": vs.Camera.orbit(image_shape=(np.int64(4), np.int64(4))),
+               "implementation": vs.LocalAmbientOcclusion(implementation=np.str_("xla")),
+               "options": vs.Scene(volume=VOL, transfer=TF, shading=np.str_("phong"),
+                                   ambient=np.str_("lao"), composition=np.str_("standard"))}
     assert not [w for w in recwarn if "static" in str(w.message)]
     for module in modules.values():
         for field in dataclasses.fields(module):
             if field.metadata.get("static"):
-                assert not isinstance(getattr(module, field.name), np.generic), field.name
+                value = getattr(module, field.name)
+                for v in value if isinstance(value, tuple) else (value,):
+                    assert not isinstance(v, np.generic), field.name
     assert type(modules["size"].size) is int and type(modules["kind"].kind) is str
 
 

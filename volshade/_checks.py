@@ -101,6 +101,18 @@ def float_leaves(module: Any, names: tuple[str, ...], where: str) -> Any:
                        tuple(float_leaf(getattr(module, name), name, where) for name in names))
 
 
+def scalar_fields(module: Any, names: Any, where: str, *, use: str = "", fix: str) -> None:
+    """Refuse a field of ``module`` among ``names`` that is not a real scalar, naming it,
+    ``use`` (what it must be a scalar for) and ``fix``; a field set with ``eqx.tree_at``
+    skipped its converter, and is refused as that would."""
+    for name in names:
+        value = getattr(module, name)
+        float_leaf(value, name, where)
+        if jnp.ndim(value) != 0:
+            raise ValueError(f"{where}: `{name}` must be a scalar{use}, got shape "
+                             f"{jnp.shape(value)}; {fix}.")
+
+
 def _default_float(arr: Array) -> Array:
     """An integer (or bool) array in the default float dtype. A Python int (a weakly typed
     array) stays weakly typed, as a Python float does: ``radius=2`` then computes and

@@ -31,7 +31,7 @@ def _image_shape(shape) -> tuple:
     if isinstance(shape, np.ndarray) and shape.ndim == 1:
         return tuple(shape.tolist())  # Python numbers: NumPy scalars are arrays to equinox
     if isinstance(shape, list | tuple):
-        return tuple(shape)
+        return tuple(_checks.python_scalar(n) for n in shape)
     raise TypeError(f"volshade.Camera: `image_shape` must be (H, W), a tuple or list of "
                     f"two ints, or one int, got {shape!r:.80}.")
 

@@ -554,6 +554,11 @@ def _scan_in_place(step: Callable, chunk: int, state: Any, colors: Array, alphas
     return steps(state, n_chunks * chunk, n_samples % chunk)
 
 
+# samples of every ray read per loop iteration on a CPU (_scan_in_place), by compositor
+STANDARD_CHUNK = 8
+IMPORTANCE_CHUNK = 4
+
+
 def _values(step: Callable, chunk: int, state: Any, colors: Array, alphas: Array,
             importance: Array | None, unroll: int) -> Any:
     """``step`` over the samples of every ray, values only.
@@ -561,11 +566,12 @@ def _values(step: Callable, chunk: int, state: Any, colors: Array, alphas: Array
     A ``lax.scan`` needs the samples in front, ``(S, ...)``: a transpose of the inputs,
     which on a CPU costs more than standard compositing itself (16384 rays x 256
     samples, the steps alone timed interleaved, ``benchmarks.run composition --quick``
-    on a 2-core CPU: 60 ms, against 19 ms for the same steps reading 8 samples per
-    iteration in place, :func:`_scan_in_place`). Importance-aware compositing, whose
-    steps cost more, gains nothing there: 128 ms in place (``chunk`` 4) against 123 ms
-    scanned. On a CPU the samples are read in place; elsewhere the
-    scan, ``unroll`` samples per iteration, is kept as it was timed (on an H200). Reverse
+    on a 2-core CPU, ``docs/results/bench_cpu_composition.json``: 46.6 ms, against 13.8
+    ms for the same steps reading 8 samples per iteration in place,
+    :func:`_scan_in_place`). Importance-aware compositing, whose steps cost more, gains
+    nothing there: 85.4 ms in place (``chunk`` 4) against 84.7 ms scanned. On a CPU the
+    samples are read in place; elsewhere the scan, ``unroll`` samples per iteration, is
+    kept as it was timed (on an H200). Reverse
     mode through the in-place loop would accumulate the inputs' cotangents slice by slice
     (222 against 180 ms), so derivatives always go through the scan.
     """
@@ -580,7 +586,7 @@ def _standard_scan(state: StandardState, colors: Array, alphas: Array,
                    unroll: int) -> StandardState:
     """:func:`standard_step` over the samples of each ray (:func:`_values`); derivatives
     through a ``lax.scan`` of the same steps."""
-    return _values(standard_step, 8, state, colors, alphas, None, unroll)
+    return _values(standard_step, STANDARD_CHUNK, state, colors, alphas, None, unroll)
 
 
 def _standard_scan_jvp(unroll, primals, tangents):
@@ -625,7 +631,8 @@ def _importance_scan(
     dot products and the ``(..., S, 3)`` colour cotangents are formed outside it,
     in one vectorised pass each, in the caller's layout.
     """
-    return _values(importance_step, 4, state, colors, alphas, importance, unroll)
+    return _values(importance_step, IMPORTANCE_CHUNK, state, colors, alphas, importance,
+                   unroll)
 
 
 def _importance_scan_fwd(state, colors, alphas, importance, unroll):

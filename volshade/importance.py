@@ -147,13 +147,9 @@ class Importance(eqx.Module):
                        traced=False)
 
     def _check_scalars(self) -> None:
-        for name, value in _leaves(self).items():
-            # set with eqx.tree_at, it skipped its converter: refused as that would
-            _checks.float_leaf(value, name, "volshade.Importance")
-            if jnp.ndim(value) != 0:
-                raise ValueError(f"volshade.Importance: `{name}` must be a scalar, got shape "
-                                 f"{jnp.shape(value)}; for per-ray global weights pass "
-                                 f"`global_weight=` to `sample_importance`.")
+        _checks.scalar_fields(self, _leaves(self), "volshade.Importance",
+                              fix="for per-ray global weights pass `global_weight=` to "
+                                  "`sample_importance`")
 
     def _non_finite(self) -> list[tuple[Array, str]]:
         """NaN or inf weights (-inf allowed where :attr:`may_be_minus_inf` says)."""

@@ -1069,7 +1069,7 @@ class LocalAmbientOcclusion(eqx.Module):
             max_radius = 2 * float(np.max(np.asarray(radius)))
         self.max_radius = max_radius
         _checks.option(implementation, _IMPLEMENTATIONS, "implementation", where)
-        self.implementation = implementation
+        self.implementation = _checks.python_scalar(implementation)
 
     def _without_gradient(self) -> dict[str, str]:
         """The leaves whose derivative is zero wherever defined (:func:`volshade.fit`)."""

@@ -131,7 +131,7 @@ def _option(name: str, table: dict, hint: str = "") -> Callable[[Any], str]:
     """The converter of an option field: the name itself, checked against ``table``."""
     def check(value: Any) -> str:
         _checks.option(value, table, name, _WHERE, hint=hint)
-        return value
+        return _checks.python_scalar(value)
     return check
 
 

@@ -74,14 +74,9 @@ class Phong(eqx.Module):
     def checked(self) -> "Phong":
         """These coefficients, refused at run time where traced values are out of range,
         and at once where they are not scalars (a batch of settings is for vmap)."""
-        for name in self._COEFFICIENTS:
-            value = getattr(self, name)
-            # set with eqx.tree_at, it skipped its converter: refused as that would
-            _checks.float_leaf(value, name, "volshade.Phong")
-            if jnp.ndim(value) != 0:
-                raise ValueError(f"volshade.Phong: `{name}` must be a scalar to shade, got "
-                                 f"shape {jnp.shape(getattr(self, name))}; for a batch of "
-                                 f"settings, jax.vmap the render over the Phong module.")
+        _checks.scalar_fields(self, self._COEFFICIENTS, "volshade.Phong", use=" to shade",
+                              fix="for a batch of settings, jax.vmap the render over the "
+                                  "Phong module")
         return _checks.refuse(self, self._problems(), "volshade.Phong")
 
 

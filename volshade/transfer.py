@@ -55,6 +55,9 @@ def _step(step: Any, where: str, shape: tuple[int, ...]) -> Array | None:
                                   "length of 0 has opacity 0).")], where)
 
 
+_LEAVES = ("points", "colors", "opacities")
+
+
 class TransferFunction(eqx.Module):
     """Piecewise-linear 1D transfer function (intensity -> RGB colour, opacity).
 
@@ -131,7 +134,7 @@ class TransferFunction(eqx.Module):
         would truncate every opacity and colour to 0; half precision as float32:
         ``jnp.interp`` refuses it)."""
         # leaves set with eqx.tree_at skipped the converters and the shape checks
-        tf = _checks.float_leaves(self, ("points", "colors", "opacities"), _WHERE)
+        tf = _checks.float_leaves(self, _LEAVES, _WHERE)
         tf._check_shapes()
         tf = _checks.refuse(tf, tf._problems(), _WHERE)
         volume = _checks.finite(_checks.as_working_float(volume, "volume", where), "volume",
@@ -434,6 +437,9 @@ def _check_feature_range(feature: TransferFunction, dtype, extent: np.ndarray | 
     """Refuse, when known, a feature whose control points do not span the volume's
     ``extent`` (min, max): the natural way to write a band stops at its edges.
     ``opacity`` checks traced values."""
+    # (fields set with eqx.tree_at skipped the converters and the shape checks)
+    feature = _checks.float_leaves(feature, _LEAVES, _WHERE)
+    feature._check_shapes()
     # in the dtype opacity() compares in (half precision as float32)
     points = _checks.concrete(feature.points.astype(jnp.promote_types(dtype, jnp.float32)))
     if points is None or extent is None:
