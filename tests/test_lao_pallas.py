@@ -411,3 +411,25 @@ def test_scene_renders_with_the_pallas_march():
                                             ambient="lao", lao=params, shading="phong"), cam)
 
     np.testing.assert_allclose(image("pallas"), image("xla"), rtol=0, atol=1e-13)
+
+
+def test_a_fit_refuses_the_pallas_march_by_name():
+    """The fit transposes the render's VJP for forward mode, and a Pallas call has no
+    transpose: it failed with a bare ``AssertionError: must override`` (found by a
+    review); it is refused, naming the field and the fix."""
+    from volshade import Camera, FeatureAmbientOcclusion, IntervalFeature, Scene, fit
+    from volshade.transfer import preset
+
+    vol = _alpha((8, 9, 10), 6)
+    cam = Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(4, 4))
+    pallas = LocalAmbientOcclusion(3.0, directions=4, samples=4, implementation="pallas")
+    for scene, path in [
+            (Scene(volume=vol, transfer=preset("grey"), ambient="lao", lao=pallas), "lao"),
+            (Scene(volume=vol, transfer=preset("grey"), ambient="feature_ao",
+                   feature_ao=FeatureAmbientOcclusion([IntervalFeature(0.2, 0.9)],
+                                                      lao=pallas)), "feature_ao.lao")]:
+        with pytest.raises(ValueError, match=rf"`{path}.implementation` is 'pallas', whose "
+                                             r"kernels have no transpose.*fit with "
+                                             r"implementation='xla'"):
+            fit(scene, cam, jnp.zeros((4, 4, 4)), params=(f"{path}.radius",))
+

@@ -665,9 +665,12 @@ def _importance_scan_bwd(unroll, residuals, cotangent):
     carry = (jnp.ones_like(cotangent.transmittance), cotangent.transmittance,
              cotangent.importance_offset,
              cotangent.peak_importance - cotangent.importance_offset)
+    # (checkpointed: this pass is linear in the cotangent, and its transpose, forward
+    # mode built from it, would otherwise store every step's non-linear values: 4x the
+    # gradient's memory, where now 2x)
     (scale, lam_t, lam_k, lam_p), (color_scale, lam_alpha, lam_imp) = jax.lax.scan(
-        body, carry, (t_acc, gap, at_peak, alphas, dot_acc, dot_sample), reverse=True,
-        unroll=unroll)
+        jax.checkpoint(body), carry, (t_acc, gap, at_peak, alphas, dot_acc, dot_sample),
+        reverse=True, unroll=unroll)
     lam_state = ImportanceState(_expand(scale) * lam, lam_t, lam_k + lam_p, lam_k)
     lam_colors = _expand(jnp.moveaxis(color_scale, 0, -1)) * lam[..., None, :]
     return (lam_state, lam_colors, jnp.moveaxis(lam_alpha, 0, -1),

@@ -420,6 +420,20 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
     return views
 
 
+def _refuse_pallas(scene: Scene) -> None:
+    """Refuse LAO by the Pallas kernels, whose calls have no transpose: the fit builds
+    forward mode by transposing the render's VJP (:func:`_forward_by_reverse`), which
+    failed deep inside JAX with a bare ``AssertionError: must override``."""
+    modules = {"lao": scene.lao,
+               "feature_ao.lao": None if scene.feature_ao is None else scene.feature_ao.lao}
+    for path, module in modules.items():
+        if module is not None and module.implementation == "pallas":
+            raise ValueError(f"{_WHERE}: `{path}.implementation` is 'pallas', whose kernels "
+                             f"have no transpose, which the fit builds its forward mode "
+                             f"from; fit with implementation='xla' (the same values and "
+                             f"gradients), and render the fitted scene with 'pallas'.")
+
+
 def _forward_by_reverse(fn: Callable[[Any, Any], Any]) -> Callable[[Any, Any], Any]:
     r"""``fn(data, y)`` with a JVP rule in ``y`` built from its VJP: $J v$ is the
     transpose of the linear map $c \mapsto J^T c$ (``data`` is held fixed: its
@@ -646,7 +660,8 @@ def fit(
             (a background importance of ``-inf``), an LAO radius's upper bound above
             its ``max_radius``, targets or weights that do not match the cameras,
             targets far outside [0, 1] (beyond [-1, 2]: an image of 0-255; an integer
-            image is a ``TypeError``), a solver of another kind.
+            image is a ``TypeError``), a solver of another kind, LAO with
+            ``implementation="pallas"``.
         equinox.EquinoxRuntimeError: a parameter the render does not depend on at its
             initial value (every derivative of the image in it exactly 0: a weight of
             0 switches it off) and that the fit left there, named with the settings
@@ -667,6 +682,7 @@ def fit(
     if not isinstance(scene, Scene):
         raise TypeError(f"{_WHERE}: `scene` must be a volshade.Scene (the start of the fit), "
                         f"got {type(scene).__name__}.")
+    _refuse_pallas(scene)
     named, where, leaves = _parameters(scene, params)
     views = _views(camera, target, weights)
     max_steps = _checks.positive_int(max_steps, "max_steps", _WHERE)
