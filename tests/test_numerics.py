@@ -16,6 +16,24 @@ def test_values_keep_dtype(dtype):
     assert nm.correct_opacity(x, 2.0).dtype == dtype
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_edge_pad_equals_jnp_pad_and_its_transpose(dtype):
+    # the same values, tiny and huge, with one-voxel axes and uneven widths (a -0 on a
+    # border pads as +0); its pullback is jnp.pad's (the border cotangents summed onto
+    # the edge voxels)
+    rng = np.random.default_rng(3)
+    x = jnp.asarray(rng.normal(size=(4, 1, 5)) * 10.0 ** rng.integers(-30, 30, size=(4, 1, 5)),
+                    dtype).at[0, 0, 0].set(-0.0)
+    widths = [(2, 1), (0, 3), (1, 0)]
+    got, ref = nm.edge_pad(x, widths), jnp.pad(x, widths, mode="edge")
+    assert got.dtype == dtype and got.shape == ref.shape
+    assert np.array_equal(np.asarray(got), np.asarray(ref))
+    w = jnp.asarray(rng.normal(size=ref.shape), dtype)
+    np.testing.assert_allclose(jax.vjp(lambda x: nm.edge_pad(x, widths), x)[1](w)[0],
+                               jax.vjp(lambda x: jnp.pad(x, widths, mode="edge"), x)[1](w)[0],
+                               rtol=1e-6 if dtype == jnp.float32 else 1e-14)
+
+
 def test_safe_div_singular_point():
     assert float(nm.safe_div(1.0, 0.0)) == 0.0
     g_num, g_den = jax.grad(nm.safe_div, argnums=(0, 1))(1.0, 0.0)

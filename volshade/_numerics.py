@@ -7,8 +7,11 @@ differentiates the discarded branch and turns ``0 * inf`` into NaN).
 Tolerances come from the input dtype; outputs keep the input dtype.
 """
 
+from collections.abc import Sequence
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from ._types import Array, ArrayLike
@@ -118,6 +121,32 @@ def scaled_down(x: ArrayLike, scale: ArrayLike) -> Array:
     """
     inv_root = lax.stop_gradient(1 / jnp.sqrt(jnp.asarray(scale)))
     return jnp.asarray(x) * inv_root * inv_root
+
+
+def edge_pad(x: ArrayLike, widths: Sequence[tuple[int, int]]) -> Array:
+    """``jnp.pad(x, widths, mode="edge")``: the same values for finite ``x`` (a -0 on a
+    border pads as +0), built axis by axis as a zero pad plus each border slice times a
+    0/1 mask of the padding it fills.
+
+    Reverse mode through ``jnp.pad``'s edge mode (slices and a concatenation) kept a
+    stencil's shifted reads apart: XLA materialised the cotangent of each read as a
+    padded-size buffer before summing them (the 5^3 regression gradient of a 64^3
+    float32 volume: 124 of them, 153 MiB of temporaries, 151 ms). From this form it
+    fuses the sum (14 MiB, 35 ms; the forward pass is unchanged, 2.3 ms). Selecting the
+    border with ``where`` kept them apart too.
+    """
+    x = jnp.asarray(x)
+    for axis, (low, high) in enumerate(widths):
+        if low == high == 0:
+            continue
+        n = x.shape[axis]
+        config = [(0, 0)] * x.ndim
+        config[axis] = (low, high)
+        index = np.arange(n + low + high).reshape([-1 if a == axis else 1 for a in range(x.ndim)])
+        first, last = lax.slice_in_dim(x, 0, 1, axis=axis), lax.slice_in_dim(x, n - 1, n, axis=axis)
+        x = (jnp.pad(x, config) + first * (index < low).astype(x.dtype)
+             + last * (index >= n + low).astype(x.dtype))
+    return x
 
 
 def safe_normalize(x: ArrayLike, axis: int = -1) -> Array:

@@ -135,7 +135,7 @@ def _regression_gradient(volume: Array, size: int, spacing: tuple[float, float, 
     shape = volume.shape
 
     def gradient(volume):
-        padded = jnp.pad(volume, half, mode="edge")
+        padded = _numerics.edge_pad(volume, [(half, half)] * 3)
 
         def shifted(k):
             return padded[tuple(slice(half + k[ax], half + k[ax] + shape[ax])
