@@ -89,6 +89,9 @@ def pytest_addoption(parser):
                           "(about 1.5 min of CPU; .ci/run does, in a second pytest run)")
 
 
+_SLOW_DOCTESTS = {"volshade/fit.py::volshade.fit.fit"}
+
+
 def pytest_collection_modifyitems(config, items):
     # the experiments (real data, subprocesses at XLA's default optimisation: 120 s of
     # CPU, a fifth of the suite's) and the benchmarks' dry runs run when asked for, as
@@ -101,6 +104,11 @@ def pytest_collection_modifyitems(config, items):
         for item in items:
             if item.get_closest_marker(marker):
                 item.add_marker(skip)
+    # docstring examples that take 6 s or more (a fit compiles its solver: 13 s); without
+    # the mark, collected last, it ran at the very end of the session
+    for item in items:
+        if item.nodeid in _SLOW_DOCTESTS:
+            item.add_marker(pytest.mark.slow)
     # the slow tests first (the sort is stable): pytest-xdist hands tests out in
     # collection order, and a long test started last keeps one core busy alone
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)

@@ -801,6 +801,7 @@ def test_render_with_huge_importance_gaps():
                                atol=1e-6)
 
 
+@pytest.mark.slow
 def test_render_one_voxel_volume():
     dtype = jnp.float32
     # orthographic rays along -h through a one-voxel box (half extent 1/2): pixels at

@@ -465,8 +465,11 @@ def test_bricked_gradients_and_vmap(always_bricked):
                            brick_size=brick) ** 2)
 
     grad = jax.jit(jax.grad(f, (0, 1)), static_argnums=2)
-    g_full = grad(alpha, 4.2, None)
-    g_brick = grad(alpha, 4.2, 4)
+    # radii as arrays of one (strong) type: the checks of the vmapped gradients below
+    # reuse the unbricked program (a Python 4.2, weakly typed, compiled it twice)
+    radii = jnp.asarray([4.2, 3.1])
+    g_full = grad(alpha, radii[0], None)
+    g_brick = grad(alpha, radii[0], 4)
     np.testing.assert_allclose(np.asarray(g_brick[0]), np.asarray(g_full[0]), atol=1e-12)
     np.testing.assert_allclose(float(g_brick[1]), float(g_full[1]), rtol=1e-12)
     batch = jnp.stack([alpha, _sparse_alpha((12, 12, 12), 14, jnp.float64)])
@@ -475,7 +478,6 @@ def test_bricked_gradients_and_vmap(always_bricked):
     ref = jnp.stack([lao(a, directions=dirs, radius=4.2, samples=2) for a in batch])
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=1e-12)
     # vmapped, each element takes its own branch (a loop): gradients as each alone
-    radii = jnp.asarray([4.2, 3.1])
     grads = jax.jit(jax.vmap(jax.grad(lambda a, r: f(a, r, 4), (0, 1))))(batch, radii)
     for i in range(2):
         want = grad(batch[i], radii[i], None)

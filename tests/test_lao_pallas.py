@@ -193,18 +193,16 @@ def test_radius_and_opacity_gradients_match_finite_differences():
     alpha, radius, offset, _ = _inputs(0)
     ct = jnp.asarray(np.random.default_rng(3).normal(size=alpha.shape))
 
-    def of_radius(r):
-        return jnp.sum(ct * _call(0, "pallas", alpha, r, offset, None))
+    def loss(a, r):
+        return jnp.sum(ct * _call(0, "pallas", a, r, offset, None))
 
-    fd = central_difference(of_radius, radius, 1.0)
-    np.testing.assert_allclose(jax.grad(of_radius)(radius), fd, rtol=1e-4)
-
-    def of_alpha(a):
-        return jnp.sum(ct * _call(0, "pallas", a, radius, offset, None))
-
+    # both gradients from one reverse pass (one backward program, not one per argument)
+    g_alpha, g_radius = jax.grad(loss, argnums=(0, 1))(alpha, radius)
+    fd = central_difference(lambda r: loss(alpha, r), radius, 1.0)
+    np.testing.assert_allclose(g_radius, fd, rtol=1e-4)
     direction = jnp.zeros_like(alpha).at[4, 6, 3].set(1.0).at[5, 5, 4].set(-0.5)
-    fd = central_difference(of_alpha, alpha, direction)
-    np.testing.assert_allclose(jnp.vdot(jax.grad(of_alpha)(alpha), direction), fd, rtol=1e-4)
+    fd = central_difference(lambda a: loss(a, radius), alpha, direction)
+    np.testing.assert_allclose(jnp.vdot(g_alpha, direction), fd, rtol=1e-4)
 
 
 def test_vmap_over_volumes_and_radii():

@@ -333,6 +333,7 @@ def test_bad_values_are_refused_by_name(build, exc, match):
         build()
 
 
+@pytest.mark.slow
 def test_modules_built_with_a_batch_axis_vmap():
     # leaves may carry a batch axis (one Module for several settings, then vmap)
     batched = vs.Phong(ambient=[0.2, 0.4], diffuse=[0.6, 0.6], specular=[0.2, 0.0],

@@ -154,6 +154,7 @@ def test_jit_vmap_grad_of_march():
     assert np.isfinite(g_cam)
 
 
+@pytest.mark.slow
 def test_gradient_wrt_camera_matches_finite_differences():
     # d(image)/d(azimuth, elevation) and d(image)/d(eye), perspective and orthographic,
     # against central differences in float64 (the rays depend on the camera)

@@ -460,7 +460,9 @@ def test_non_finite_parameters_are_refused_by_name(jit):
         vs.Phong(diffuse=jnp.nan)  # known values: refused at construction
     with pytest.raises(ValueError, match="Camera.orbit: `azimuth` must be finite, got nan"):
         vs.Camera.orbit(azimuth=float("nan"))
-    nan_eye = eqx.tree_at(lambda c: c.eye, cam, jnp.full(3, jnp.nan))  # as a fit could set it
+    # as a fit could set it: an array of the leaf's dtype (a weakly typed one, as
+    # jnp.full(3, jnp.nan) makes, compiled a render of its own under jit)
+    nan_eye = eqx.tree_at(lambda c: c.eye, cam, jnp.full_like(cam.eye, jnp.nan))
     phong_scene = vs.Scene(volume=vol, transfer=tf, shading="phong")
     importance_scene = vs.Scene(volume=vol, transfer=tf, composition="importance",
                                 importance=Importance(intensity=1.0))
