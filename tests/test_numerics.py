@@ -18,9 +18,9 @@ def test_values_keep_dtype(dtype):
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_edge_pad_equals_jnp_pad_and_its_transpose(dtype):
-    # the same values, tiny and huge, with one-voxel axes and uneven widths (a -0 on a
-    # border pads as +0); its pullback is jnp.pad's (the border cotangents summed onto
-    # the edge voxels)
+    # the same values, tiny and huge, with one-voxel axes and uneven widths (compared as
+    # values: a -0 comes out +0); its pullback is jnp.pad's (the border cotangents summed
+    # onto the edge voxels)
     rng = np.random.default_rng(3)
     x = jnp.asarray(rng.normal(size=(4, 1, 5)) * 10.0 ** rng.integers(-30, 30, size=(4, 1, 5)),
                     dtype).at[0, 0, 0].set(-0.0)

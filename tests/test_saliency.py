@@ -260,8 +260,9 @@ def test_viewpoint_saliency_grad_vmap_dtype():
 
 @pytest.mark.parametrize("visibility", ["transmittance", "contribution"])
 def test_viewpoint_saliency_reverse_mode_does_not_keep_every_view(visibility):
-    # found by a review: every view's sheared columns were kept for the reverse pass
-    # (32^3, 42 views: 650 volumes of temporaries, 10x the forward's). A compiled
+    # found by a reverse-mode memory audit: every view's sheared columns were kept for
+    # the reverse pass (32^3, 42 views: 650 volumes of temporaries, 10x the forward's).
+    # A compiled
     # program's buffer plan, not a timing: its gradient against its forward, 42 views
     spec = jax.ShapeDtypeStruct((16, 16, 16), jnp.float32)
     views = icosphere(1)
