@@ -25,6 +25,13 @@ def central_difference(f, x, direction, h=1e-6):
     return (f(x + h * direction) - f(x - h * direction)) / (2 * h)
 
 
+def temp_bytes(f, *specs) -> int:
+    """The temporaries of ``jax.jit(f)`` compiled for ``specs`` (arrays or
+    ``jax.ShapeDtypeStruct``), from its buffer plan: a memory figure that does not depend
+    on the machine's load, for tests that reverse mode keeps few buffers."""
+    return jax.jit(f).lower(*specs).compile().memory_analysis().temp_size_in_bytes
+
+
 def check_grad_fd(f, x, *, key=0, h=1e-6, rtol=1e-4, n_dirs=3):
     """Compare ``jax.grad(f)(x) . v`` with central differences along random ``v``."""
     g = jax.jit(jax.grad(f))(x)

@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import check_grad_fd, tol
+from helpers import check_grad_fd, temp_bytes, tol
 from reference_gradient import regression_gradient_reference
 
 from volshade.directions import icosphere
@@ -270,8 +270,7 @@ def test_viewpoint_saliency_reverse_mode_does_not_keep_every_view(visibility):
     def f(s, a):
         return jnp.sum(viewpoint_saliency(s, a, views, visibility=visibility))
 
-    forward, grad = (jax.jit(fn).lower(spec, spec).compile().memory_analysis()
-                     .temp_size_in_bytes for fn in (f, jax.grad(f, (0, 1))))
+    forward, grad = (temp_bytes(fn, spec, spec) for fn in (f, jax.grad(f, (0, 1))))
     assert grad <= 2 * forward, grad / forward
 
 

@@ -424,10 +424,13 @@ def _refuse_pallas(scene: Scene) -> None:
     """Refuse LAO by the Pallas kernels, whose calls have no transpose: the fit builds
     forward mode by transposing the render's VJP (:func:`_forward_by_reverse`), which
     failed deep inside JAX with a bare ``AssertionError: must override``."""
-    modules = {"lao": scene.lao,
-               "feature_ao.lao": None if scene.feature_ao is None else scene.feature_ao.lao}
-    for path, module in modules.items():
-        if module is not None and module.implementation == "pallas":
+    def is_lao(node):
+        return isinstance(node, LocalAmbientOcclusion)
+
+    # every LAO the scene holds (its own, feature AO's), found wherever it lies
+    for keys, module in jax.tree_util.tree_flatten_with_path(scene, is_leaf=is_lao)[0]:
+        if is_lao(module) and module.implementation == "pallas":
+            path = jax.tree_util.keystr(keys)[1:]
             raise ValueError(f"{_WHERE}: `{path}.implementation` is 'pallas', whose kernels "
                              f"have no transpose, which the fit builds its forward mode "
                              f"from; fit with implementation='xla' (the same values and "
