@@ -363,8 +363,8 @@ def test_memory_holds_one_direction_group_at_a_time():
     # and the colours transposed) was made outside the loop over the group's directions,
     # and each group summed into its own accumulator: XLA made all six frames and
     # accumulators before marching the first group, 41 volumes of temporaries (67 with
-    # colours) at 32^3; frames made per direction, 18 (34); one running sum, 13 (19). A
-    # compiled program's buffer plan, not a timing
+    # colours) at 32^3; frames made per direction and colours gathered as given, 18 (34);
+    # one running sum, 13 (19). A compiled program's buffer plan, not a timing
     n = 32
     spec = jax.ShapeDtypeStruct((n, n, n), jnp.float32)
     colors = jax.ShapeDtypeStruct((n, n, n, 3), jnp.float32)

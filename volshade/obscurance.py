@@ -380,7 +380,11 @@ def _occluder_index(steps: Array, off_b: Array, off_c: Array) -> tuple[Array, Ar
 
 def _volume_index(frame_index: tuple[Array, Array, Array], axis: int,
                   sign: int) -> tuple[Array, Array, Array]:
-    """Frame coordinates ``(i, j, k)`` (:func:`_to_frame`) as the volume's ``(d, h, w)``."""
+    """Frame coordinates ``(i, j, k)`` (:func:`_to_frame`) as the volume's ``(d, h, w)``.
+
+    The index arrays have the frame's shape (as :func:`_occluder_index` gives them): the
+    frame's first axis, of length ``i.shape[0]``, is the one a negative ``sign`` flips.
+    """
     i, j, k = frame_index
     if sign < 0:
         i = i.shape[0] - 1 - i
