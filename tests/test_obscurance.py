@@ -374,12 +374,13 @@ def test_memory_holds_one_direction_group_at_a_time():
                           spec, colors)
     assert plain <= 20 * volume, plain / volume
     assert bleeding <= 28 * volume, bleeding / volume
-    # reverse mode w.r.t. d_max, with colours and a cotangent that is not constant: 87
-    # volumes with an accumulator per group, 72 with the running sum
+    # reverse mode w.r.t. d_max, with colours and a cotangent that is not constant: 98
+    # volumes at first, 87 with the frames made per direction, 72 with the running sum,
+    # 53 with each direction's tile tied to the direction (not kept from the forward pass)
     grad = jax.grad(lambda d, a, c: jnp.sum(jnp.sin(
         obscurance(a, directions=DIRS12, d_max=d, colors=c))))
     reverse = temp_bytes(grad, jax.ShapeDtypeStruct((), jnp.float32), spec, colors)
-    assert reverse <= 78 * volume, reverse / volume
+    assert reverse <= 62 * volume, reverse / volume
 
 
 def test_grad_density_is_zero_and_finite_at_hard_cases():
