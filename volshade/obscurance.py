@@ -342,23 +342,23 @@ def _first_greater_steps(x: Array) -> Array:
     return jnp.where(target < n, pos + 1, 0)
 
 
-def _frame_steps(frame: Array, off_b: Array, off_c: Array) -> Array:
-    """Steps to the occluder of every frame voxel along one direction (0: none).
+def _frame_steps(volume: Array, axis: int, sign: int, off_b: Array, off_c: Array) -> Array:
+    """Steps to the occluder of every voxel along one direction (0: none), in the frame
+    of the direction's group (``axis``, ``sign``; :func:`_to_frame`).
 
     The first greater value ahead is searched in the whole cyclic column; where it
     lies past the end of the voxel's own line (the column wrapped to another line),
     there is no occluder.
     """
+    # The frame and its tiles are made here, for each direction, not once per group
+    # outside the loop over its directions: XLA then made every group's (five volumes a
+    # group, six groups) before marching the first, 43 volumes of temporaries against 20
+    # (64^3, 42 directions), in the same time. `+ 0 * off_b[0]` (which adds 0) ties the
+    # tiles to the direction: the scan's reverse mode moved them, depending only on the
+    # volume, out of the loop and kept every group's from the forward pass (with
+    # colours, 73 volumes against 54).
+    frame = _to_frame(volume, axis, sign)
     n_b, n_c = frame.shape[1], frame.shape[2]
-    # tiled here, per direction, and the callers transpose the volume into the frame
-    # per direction too: done once per direction group, outside the loop over its
-    # directions, XLA made every group's frame and tiles (five volumes a group, six
-    # groups) before marching the first (the obscurance's temporaries: 43 volumes
-    # against 20, 64^3 and 42 directions, in the same time)
-    # (`+ 0 * off_b[0]` ties the tile to the direction: the scan's reverse mode moved a
-    # value that depends only on the frame out of the loop and kept it for the backward
-    # pass, every group's tile, four volumes each; 73 volumes of temporaries against 54,
-    # 64^3 with colours, in the same time. The values are unchanged: 0 is added.)
     tiled = _tile(frame + (0 * off_b[0]).astype(frame.dtype))
     # the columns run along the first axis: laid out along the contiguous last axis
     # instead (two transposes per direction), the whole obscurance measured 1.6-1.7x
@@ -522,7 +522,7 @@ def _occluder_distances(density: Array, dirs: tuple) -> Array:
     for g in _line_groups(dirs, density.shape):
         def one(tables, g=g):
             off_b, off_c, step = tables
-            steps = _frame_steps(_to_frame(density, g.axis, g.sign), off_b, off_c)
+            steps = _frame_steps(density, g.axis, g.sign, off_b, off_c)
             dist = jnp.where(steps > 0, steps.astype(dtype) * step, jnp.inf)
             return _from_frame(dist, g.axis, g.sign)
 
@@ -699,7 +699,7 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
     for g in _line_groups(dirs, density.shape):
         def body(acc, tables, g=g):
             off_b, off_c, step = tables
-            steps = _frame_steps(_to_frame(search, g.axis, g.sign), off_b, off_c)
+            steps = _frame_steps(search, g.axis, g.sign, off_b, off_c)
             dist = steps.astype(dtype) * step
             occluded = (steps > 0) & (dist <= d_max)
             safe_dist = jnp.where(occluded, dist, d_max)
@@ -729,7 +729,8 @@ def _obscurance(density: Array, d_max: Array, colors: Array | None, ambient: Arr
         acc0 = _to_frame(total, g.axis, g.sign)
         # rematerialised in reverse mode: each direction's distances and gathered colours
         # would otherwise be kept, some 3-5 volumes per direction (162 directions of a
-        # 256^3 volume: 31 GB for the gradient w.r.t. d_max, 39 volumes now for any L)
+        # 256^3 volume: 31 GB for the gradient w.r.t. d_max; now 20 volumes of
+        # temporaries, 25 with colours, for any L)
         acc, _ = jax.lax.scan(jax.checkpoint(body), acc0,
                               (jnp.asarray(g.off_b), jnp.asarray(g.off_c),
                                jnp.asarray(g.step, dtype)))
