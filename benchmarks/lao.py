@@ -137,12 +137,25 @@ def run(quick: bool) -> dict:
     loss = lambda a, r: jnp.sum(lao(a, directions=dirs, radius=r, offset=1.0,  # noqa: E731
                                     samples=samples, max_radius=24.0))
     both = jax.jit(jax.value_and_grad(loss, (0, 1)))
-    t_f, t_b = time_fns({"forward": fwd, "both": both}, a, r32, repeats=repeats).values()
+    tangent = jnp.asarray(np.random.default_rng(0).standard_normal(a.shape), jnp.float32)
+    jvps = {"jvp(radius)": jax.jit(lambda a, r: jax.jvp(lambda r: fwd(a, r), (r,),
+                                                        (jnp.ones_like(r),))),
+            "jvp(alpha, radius)": jax.jit(lambda a, r: jax.jvp(fwd, (a, r),
+                                                               (tangent, jnp.ones_like(r))))}
+    timed = time_fns({"forward": fwd, "both": both, **jvps}, a, r32, repeats=repeats)
+    t_f, t_b = timed["forward"], timed["both"]
     rows.append({"case": f"forward {n_grad}^3 L16 M16", "median_s": t_f["median_s"],
                  "first_call_s": t_f["first_call_s"]})
     rows.append({"case": f"forward+grad(alpha, radius) {n_grad}^3 L16 M16",
                  "median_s": t_b["median_s"], "first_call_s": t_b["first_call_s"]})
     ratios["forward_plus_grad_over_forward"] = t_b["median_s"] / t_f["median_s"]
+    # forward mode: the tangent march beside the values (jax.jvp returns both)
+    for name in jvps:
+        rows.append({"case": f"forward mode, {name} {n_grad}^3 L16 M16",
+                     "median_s": timed[name]["median_s"],
+                     "first_call_s": timed[name]["first_call_s"]})
+        ratios[f"{name.replace(', ', '_')}_over_forward"] = (timed[name]["median_s"]
+                                                             / t_f["median_s"])
 
     # memory at 256^3 (compile only): temporary bytes / one volume
     n_mem = 256
@@ -279,10 +292,15 @@ def run_gpu(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: float = 5
     peak_grad = _peak_bytes()
     report(rows, {"case": "forward+grad(alpha, radius)", "median_s": t_b["median_s"],
                   "first_call_s": t_b["first_call_s"]})
+    jvp = jax.jit(lambda a, rr: jax.jvp(fwd, (a, rr), (a, jnp.ones_like(rr))))
+    t_j = time_fn(jvp, alpha, r, repeats=repeats)
+    report(rows, {"case": "forward mode, jvp(alpha, radius)", "median_s": t_j["median_s"],
+                  "first_call_s": t_j["first_call_s"]})
     mem_f = fwd.lower(alpha, r).compile().memory_analysis()
     mem_b = both.lower(alpha, r).compile().memory_analysis()
     vol = alpha.size * 4
     ratios = {"forward_plus_grad_over_forward": t_b["median_s"] / t_f["median_s"],
+              "jvp_alpha_radius_over_forward": t_j["median_s"] / t_f["median_s"],
               "peak_bytes_before_forward_over_volume": peak_before / vol,
               "peak_bytes_after_forward_over_volume": peak / vol,
               "peak_bytes_after_grad_over_volume": peak_grad / vol,

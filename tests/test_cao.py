@@ -331,3 +331,34 @@ def test_scene_clips_the_render_and_the_lao_ambient():
         vs.Scene(volume=vol, transfer=tf, modulation="saliency", clip=clip)
     with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):
         vs.Scene(volume=vol, transfer=tf, clip="sphere")
+
+
+def test_forward_mode_of_moving_poses_is_the_transpose_of_reverse_mode():
+    # jax.jvp through contextual AO, vmapped over poses (each run alone, a loop): a tangent
+    # in the opacity and the radius, against each pose's own gradient (<c, J t> = <J^T c, t>)
+    alpha = ALPHA[:12, :12, :12]
+    kw = dict(KW, samples=3, max_radius=4.0)
+    kw.pop("radius")
+    c = jnp.asarray(RNG.normal(size=alpha.shape))
+    t_alpha = jnp.asarray(RNG.normal(size=alpha.shape))
+
+    def ao(alpha, radius, centre):
+        clip = vs.SphereClip(center=centre, radius=3.0)
+        return vs.contextual_ao(alpha, clip=clip, unclipped=vs.lao(alpha, radius=radius, **kw),
+                                radius=radius, brick_size=4, **kw)
+
+    centres = jnp.asarray([[2.0, 2.0, 2.0], [10.0, 3.0, 8.0], [40.0, 40.0, 40.0]])
+    radii = jnp.asarray([3.5, 2.5, 3.0])
+    tangents = jax.jit(jax.vmap(lambda r, x: jax.jvp(
+        lambda a, r: ao(a, r, x), (alpha, r), (t_alpha, jnp.ones_like(r)))[1]))(radii, centres)
+    grad = jax.jit(jax.grad(lambda a, r, x: jnp.sum(c * ao(a, r, x)), (0, 1)))
+    for i in range(3):
+        g_alpha, g_radius = grad(alpha, radii[i], centres[i])
+        want = float(jnp.vdot(g_alpha, t_alpha) + g_radius)
+        np.testing.assert_allclose(float(jnp.vdot(c, tangents[i])), want, rtol=1e-12)
+        # and the same as the full recompute's tangent
+        clip = vs.SphereClip(center=centres[i], radius=3.0)
+        full = jax.jvp(lambda a, r, clip=clip: _full(a, clip, radius=r, **kw),
+                       (alpha, radii[i]), (t_alpha, jnp.ones_like(radii[i])))[1]
+        np.testing.assert_allclose(np.asarray(tangents[i]), np.asarray(full), rtol=0,
+                                   atol=1e-12)

@@ -391,6 +391,26 @@ def test_custom_vjp_equals_autodiff_of_step_random():
                             1e-12)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_importance_forward_mode_equals_reverse_mode_on_hard_cases(dtype):
+    # forward mode is JAX's through a scan of importance_step and reverse mode its
+    # hand-written transpose: jax.jacfwd equals jax.jacrev (and is finite) on the hard
+    # rays (opacities 0 and 1, importance gaps of 1e4), stacked as a batch of rays
+    bg = jnp.asarray([0.25, 0.5, 0.75], dtype)
+    rays = [_hard_inputs(*HARD_CASES[case], dtype) for case in sorted(HARD_CASES)]
+    c, a, imp = (jnp.stack(x) for x in zip(*rays, strict=True))
+    for bgi in (-jnp.inf, 0.0, 1e4):
+        bgi = jnp.asarray(bgi, dtype)
+
+        def f(c, a, imp, bgi=bgi):
+            return composite(c, a, importance=imp, background=bg, background_importance=bgi)
+
+        fwd = jax.jit(jax.jacfwd(f, (0, 1, 2)))(c, a, imp)
+        rev = jax.jit(jax.jacrev(f, (0, 1, 2)))(c, a, imp)
+        _assert_grads_equal(fwd, rev, 1e-12 if dtype == jnp.float64 else 1e-5)
+        assert float(jnp.max(jnp.abs(fwd[2]))) > 1e-3  # the importances move the colour
+
+
 def test_custom_vjp_any_state_cotangent():
     # the adjoint of the scan for any cotangent of the final state (P and delta apart) and a
     # nonempty initial state, against JAX's reverse mode through importance_step
@@ -436,7 +456,7 @@ def test_faint_samples_on_empty_rays_have_finite_gradients(dtype):
 
 
 def test_transposed_importance_gradient_stores_no_more_than_twice_the_gradient():
-    # forward mode built by transposing the custom VJP (as vs.fit does for a render)
+    # a transposed VJP (how vs.fit built its forward mode before the compositor had one)
     # stored every backward step's non-linear values: 3.3x the gradient's temporaries
     # (found by a review); the backward step is checkpointed, and recomputed. A compiled
     # program's buffer plan, not a timing: 512 rays of 32 samples, float32
@@ -719,7 +739,7 @@ def test_traced_bad_samples_are_refused_at_run_time(importance_aware):
     if importance_aware:
         cases.append(((c, a, np.where(imp > 3, -np.inf, imp)), "`importance` contains NaN or inf"))
     for args, message in cases:
-        for fn in (f, grad, grad_colors, *(() if importance_aware else (jvp_colors,))):
+        for fn in (f, grad, grad_colors, jvp_colors):
             fn = jax.jit(fn)
             with pytest.raises(Exception, match=message):  # (wrapped in a JaxRuntimeError)
                 jax.block_until_ready(fn(*args))

@@ -283,9 +283,107 @@ def test_grads_vs_finite_differences(corr):
         assert abs(float(jnp.vdot(g_alpha, v)) - fd) <= 1e-4 * abs(fd)
 
 
+@pytest.mark.parametrize("corr", [False, True])
+def test_forward_mode_vs_finite_differences(corr):
+    # jax.jvp runs a tangent march beside the values (a JVP of its own, not the
+    # transposed reverse mode): each voxel's tangent in the opacity, radius, offset and
+    # weights against central differences, float64 (random directions, so that no sample
+    # sits on a grid plane, where the derivative is one-sided)
+    alpha = 0.05 + 0.85 * _random_alpha(_FD_SHAPE, 8, jnp.float64, smooth=True)
+    dirs = vdirs.random_polar(3, key=jax.random.key(5))
+    rng = np.random.default_rng(2)
+    point = (alpha, jnp.float64(5.37), jnp.float64(0.83), jnp.asarray([1.0, 2.0, 0.5]))
+    tangent = (jnp.asarray(rng.standard_normal(_FD_SHAPE)), jnp.float64(0.7),
+               jnp.float64(-0.4), jnp.asarray(rng.standard_normal(3)))
+
+    def f(a, r, off, w):
+        return lao(a, directions=dirs, radius=r, offset=off, samples=4, weights=w,
+                   opacity_correction=corr, max_radius=9.0)
+
+    value, jvp = jax.jit(lambda p, t: jax.jvp(f, p, t))(point, tangent)
+    np.testing.assert_array_equal(np.asarray(value), np.asarray(f(*point)))
+    for k in range(4):  # one argument at a time, so that a wrong term cannot hide
+        only = tuple(t if i == k else jnp.zeros_like(t) for i, t in enumerate(tangent))
+        got = jax.jvp(f, point, only)[1]
+        def along(s, k=k):
+            return f(*(p + s * t if i == k else p
+                       for i, (p, t) in enumerate(zip(point, tangent, strict=True))))
+
+        fd = central_difference(along, jnp.float64(0.0), 1.0)
+        scale = float(jnp.max(jnp.abs(fd)))
+        assert scale > 1e-3
+        np.testing.assert_allclose(np.asarray(got), np.asarray(fd), rtol=0, atol=1e-4 * scale)
+    total = sum(jax.jvp(f, point, tuple(t if i == k else jnp.zeros_like(t)
+                                        for i, t in enumerate(tangent)))[1] for k in range(4))
+    np.testing.assert_allclose(np.asarray(jvp), np.asarray(total), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.slow
+def test_forward_mode_is_the_transpose_of_reverse_mode(always_bricked):
+    # <c, J t> = <J^T c, t>: the hand-written reverse mode is the forward mode's transpose,
+    # plain and bricked (whose skipped bricks carry their opacity derivative by an FFT
+    # correlation in forward mode and a convolution in reverse mode), under jit and vmap;
+    # jax.jacfwd equals jax.jacrev in the radius and offset
+    alpha = _sparse_alpha((20, 18, 16), 21, jnp.float64)
+    dirs = vdirs.fibonacci(5)
+    rng = np.random.default_rng(22)
+    c = jnp.asarray(rng.standard_normal(alpha.shape))
+    t = jnp.asarray(rng.standard_normal((3, *alpha.shape)))
+
+    def f(a, r, off, brick):
+        return lao(a, directions=dirs, radius=r, offset=off, samples=5, max_radius=3.0,
+                   opacity_correction=True, brick_size=brick)
+
+    for brick in (None, 4):
+        jvps = jax.jit(jax.vmap(lambda ta, tr, b=brick: jax.jvp(
+            lambda a, r: f(a, r, 0.6, b), (alpha, 2.7), (ta, tr))[1]))(t, jnp.asarray(
+                [0.0, 1.0, -0.5]))
+        g_alpha, g_r = jax.jit(jax.grad(lambda a, r, b=brick: jnp.sum(c * f(a, r, 0.6, b)),
+                                        (0, 1)))(alpha, 2.7)
+        for i, tr in enumerate((0.0, 1.0, -0.5)):
+            want = float(jnp.vdot(g_alpha, t[i]) + g_r * tr)
+            assert abs(float(jnp.vdot(c, jvps[i])) - want) <= 1e-12 * abs(want)
+        if brick is None:
+            plain = jvps
+            # the 40 voxels whose tangents are largest
+            near = jnp.argsort(-jnp.abs(jvps[1] - jvps[0]).ravel())[:40]
+        else:  # bricked tangents are the plain ones
+            np.testing.assert_allclose(np.asarray(jvps), np.asarray(plain), rtol=0, atol=1e-12)
+        def at(y, b=brick, near=near):
+            return f(alpha, y[0], y[1], b).ravel()[near]
+
+        fwd = jax.jacfwd(at)(jnp.asarray([2.7, 0.6]))
+        rev = jax.jacrev(at)(jnp.asarray([2.7, 0.6]))
+        assert float(jnp.min(jnp.max(jnp.abs(fwd), axis=0))) > 1e-3
+        np.testing.assert_allclose(np.asarray(fwd), np.asarray(rev), rtol=1e-11, atol=1e-14)
+
+
+def test_forward_mode_memory_does_not_grow_with_the_rays_or_samples():
+    # the tangent march carries two volumes beside the padded opacity and its tangent: a
+    # compiled program's buffer plan for 4 and 16 rays and for 4 and 16 samples, 16^3,
+    # float32, against the forward pass's (padded by 7 voxels: 6.6 volumes a copy)
+    spec = jax.ShapeDtypeStruct((16, 16, 16), jnp.float32)
+    scalar = jax.ShapeDtypeStruct((), jnp.float32)
+
+    def jvp(rays, samples):
+        def fn(a, r, ta):
+            return jax.jvp(lambda a, r: lao(a, directions=rays, radius=r, samples=samples,
+                                            max_radius=6.0), (a, r), (ta, jnp.ones_like(r)))[1]
+        return jax.jit(fn)
+
+    def forward(a, r):
+        return lao(a, directions=16, radius=r, samples=16, max_radius=6.0)
+
+    temp = [temp_bytes(jvp(rays, samples), spec, scalar, spec)
+            for rays, samples in ((4, 4), (16, 4), (4, 16), (16, 16))]
+    assert max(temp) <= 1.1 * temp[0], temp
+    volume, padded = 16 ** 3 * 4, 30 ** 3 * 4
+    assert temp[3] <= temp_bytes(jax.jit(forward), spec, scalar) + padded + 3 * volume, temp
+
+
 def test_transposed_gradient_memory_does_not_grow_with_the_rays():
-    # vs.fit's forward mode is the transpose of the VJP (fit._forward_by_reverse). Found
-    # by a review: the transposition stored the backward pass's recomputed opacities for
+    # a VJP transposed (how vs.fit built its forward mode before LAO had one). Found by
+    # a review: the transposition stored the backward pass's recomputed opacities for
     # every direction and sample (a fit of the half-resolution head with 42 rays asked
     # for 15 GB); they are checkpointed, and recomputed. A compiled program's buffer
     # plan, not a timing: 4 against 16 rays, 16^3, float32; and the values

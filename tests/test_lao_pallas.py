@@ -412,9 +412,10 @@ def test_scene_renders_with_the_pallas_march():
 
 
 def test_a_fit_refuses_the_pallas_march_by_name():
-    """The fit transposes the render's VJP for forward mode, and a Pallas call has no
-    transpose: it failed with a bare ``AssertionError: must override`` (found by a
-    review); it is refused, naming the field and the fix."""
+    """The fit's solvers use forward mode, which the Pallas kernels' custom VJP lacks
+    (when the fit transposed the render's VJP instead, it failed with a bare
+    ``AssertionError: must override``, found by a review); it is refused, naming the
+    field and the fix."""
     from volshade import Camera, FeatureAmbientOcclusion, IntervalFeature, Scene, fit
     from volshade.transfer import preset
 
@@ -427,7 +428,7 @@ def test_a_fit_refuses_the_pallas_march_by_name():
                    feature_ao=FeatureAmbientOcclusion([IntervalFeature(0.2, 0.9)],
                                                       lao=pallas)), "feature_ao.lao")]:
         with pytest.raises(ValueError, match=rf"`{path}.implementation` is 'pallas', whose "
-                                             r"kernels have no transpose.*fit with "
+                                             r"kernels have no forward mode.*fit with "
                                              r"implementation='xla'"):
             fit(scene, cam, jnp.zeros((4, 4, 4)), params=(f"{path}.radius",))
 

@@ -31,7 +31,8 @@ compositing under a hand-derived reverse-mode adjoint of the whole scan instead:
 sample it stores the accumulated colour, $T_i$ and the importance gap, and the backward
 scan is scalar per ray, with the colour work done in one vectorised pass outside it. Its
 gradients equal JAX's reverse mode through :func:`importance_step` (tested to
-rounding, hard cases included); forward mode (``jax.jvp``) is not available there.
+rounding, hard cases included). Forward mode (``jax.jvp``, ``jax.jacfwd``) is JAX's
+through a scan of the same steps, whose transpose is that adjoint.
 
 **Reading the samples.** :func:`composite` takes the samples of each ray along its
 last axes, ``(..., S, 3)`` and ``(..., S)``, while a ``lax.scan`` over the samples
@@ -54,9 +55,9 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.custom_derivatives import SymbolicZero
 
 from . import _checks
+from ._linear import jvp_of_live, jvp_of_nonzero, linear_primitive
 from ._numerics import value_and_tangent
 from ._types import Array, ArrayLike, Float
 
@@ -591,39 +592,28 @@ def _standard_scan(state: StandardState, colors: Array, alphas: Array,
 
 def _standard_scan_jvp(unroll, primals, tangents):
     """The scan's JVP in the arrays with a tangent; those without one (symbolic zeros)
-    are held constant: instantiated zeros would make reverse mode carry, e.g., a zero
-    ``(S, ..., 3)`` colour tangent for a gradient w.r.t. the opacities alone."""
-    leaves, tree = jax.tree.flatten(primals)
-    dots = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
-    live = [not isinstance(t, SymbolicZero) for t in dots]
-
-    def scan(*live_leaves):
-        it = iter(live_leaves)
-        s, c, a = jax.tree.unflatten(tree, [next(it) if on else x
-                                            for x, on in zip(leaves, live, strict=True)])
-        return _scan(standard_step, s, _samples(c, a), unroll)
-
-    if not any(live):
-        out = scan()
-        return out, jax.tree.map(jnp.zeros_like, out)
-    return jax.jvp(scan, [x for x, on in zip(leaves, live, strict=True) if on],
-                   [t for t, on in zip(dots, live, strict=True) if on])
+    are held constant (:func:`volshade._linear.jvp_of_nonzero`): instantiated zeros
+    would make reverse mode carry, e.g., a zero ``(S, ..., 3)`` colour tangent for a
+    gradient w.r.t. the opacities alone."""
+    return jvp_of_nonzero(lambda s, c, a: _scan(standard_step, s, _samples(c, a), unroll),
+                          primals, tangents)
 
 
 _standard_scan.defjvp(_standard_scan_jvp, symbolic_zeros=True)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
 def _importance_scan(
     state: ImportanceState, colors: Array, alphas: Array, importance: Array, unroll: int
 ) -> ImportanceState:
     r""":func:`importance_step` over the samples of each ray.
 
     ``colors`` ``(..., S, 3)``, ``alphas`` and ``importance`` ``(..., S)``, front first.
-    Values are computed by :func:`_values`.
-    Reverse mode is hand-written (forward mode is not available): the forward
-    pass stores, per step, the colour $C_i$, $T_i$, the gap
-    $K_i - I_s$ and whether $I_s \ge P_i$; the backward pass is a reverse
+    Values are computed by :func:`_values`. Forward mode is JAX's through a scan of the
+    same steps (:func:`_importance_tangent`); reverse mode, its transpose, is
+    hand-written (:func:`_importance_transpose`): the values that come with a
+    derivative are computed by a scan that stores, per step, the colour $C_i$, $T_i$,
+    the gap $K_i - I_s$ and whether $I_s \ge P_i$, and the backward pass is a reverse
     ``lax.scan`` of :func:`_importance_step_adjoint`. Since the colour update is
     linear with scalar weights, the colour cotangent before step $i$ is
     $W_i \lambda$, with $\lambda$ the colour cotangent of the final state and
@@ -635,20 +625,39 @@ def _importance_scan(
                    unroll)
 
 
-def _importance_scan_fwd(state, colors, alphas, importance, unroll):
+def _stored_scan(state, colors, alphas, importance, unroll):
+    """The scan of :func:`importance_step`: the final state and what reverse mode reads
+    (per step $C_i$, $T_i$, the gap and whether $I_s \\ge P_i$)."""
     def body(s, x):
         gp = _importance_gap(s, x.importance)
         return _step(s, x, gp), (s.color, s.transmittance, gp.gap, gp.at_peak)
 
-    samples = _samples(colors, alphas, importance)
-    final, stored = jax.lax.scan(body, state, samples, unroll=unroll)
-    return final, (stored, samples.alpha, colors)
+    return jax.lax.scan(body, state, _samples(colors, alphas, importance), unroll=unroll)
 
 
-def _importance_scan_bwd(unroll, residuals, cotangent):
-    (color_acc, t_acc, gap, at_peak), alphas, colors = residuals
+def _importance_tangent(c_acc, t_acc, gap, at_peak, color, transmittance, peak, offset,
+                        colors, alphas, importance, *tangents, unroll, live):
+    """The JVP of :func:`_importance_scan` in the tangents that ``live`` flags (of the
+    state's four arrays, the colours, opacities and importances; the others are scalar
+    placeholders), by JAX's forward mode through the scan."""
+    del c_acc, t_acc, gap, at_peak  # (what the transpose reads)
+
+    def scan(c, t, p, o, cs, a, i):
+        return _scan(importance_step, ImportanceState(c, t, p, o), _samples(cs, a, i), unroll)
+
+    primals = (color, transmittance, peak, offset, colors, alphas, importance)
+    return tuple(jvp_of_live(scan, primals, tangents, live)[1])
+
+
+def _importance_transpose(c_acc, t_acc, gap, at_peak, color, transmittance, peak, offset,
+                          colors, alphas, importance, *cotangents, unroll, live):
+    """The transpose of :func:`_importance_tangent`, by hand: a reverse scan over the
+    steps that :func:`_stored_scan` stored (see :func:`_importance_scan`). The
+    cotangents of the inputs that ``live`` does not flag are scalar zeros."""
+    del color, transmittance, peak, offset, importance
+    cotangent = ImportanceState(*cotangents)
     lam = cotangent.color                                               # (..., 3)
-    dot_acc = _dot3(color_acc, lam[None])                               # (S, ...) lam . C_i
+    dot_acc = _dot3(c_acc, lam[None])                                   # (S, ...) lam . C_i
     dot_sample = jnp.moveaxis(_dot3(colors, lam[..., None, :]), -1, 0)  # (S, ...) lam . C_s
 
     def body(carry, inputs):
@@ -669,15 +678,30 @@ def _importance_scan_bwd(unroll, residuals, cotangent):
     # mode built from it, would otherwise store every step's non-linear values: 3.3x
     # the gradient's temporaries, now 1.8x)
     (scale, lam_t, lam_k, lam_p), (color_scale, lam_alpha, lam_imp) = jax.lax.scan(
-        jax.checkpoint(body), carry, (t_acc, gap, at_peak, alphas, dot_acc, dot_sample),
+        jax.checkpoint(body), carry,
+        (t_acc, gap, at_peak, jnp.moveaxis(alphas, -1, 0), dot_acc, dot_sample),
         reverse=True, unroll=unroll)
-    lam_state = ImportanceState(_expand(scale) * lam, lam_t, lam_k + lam_p, lam_k)
     lam_colors = _expand(jnp.moveaxis(color_scale, 0, -1)) * lam[..., None, :]
-    return (lam_state, lam_colors, jnp.moveaxis(lam_alpha, 0, -1),
-            jnp.moveaxis(lam_imp, 0, -1))
+    out = (_expand(scale) * lam, lam_t, lam_k + lam_p, lam_k, lam_colors,
+           jnp.moveaxis(lam_alpha, 0, -1), jnp.moveaxis(lam_imp, 0, -1))
+    zero = jnp.zeros((), lam.dtype)
+    return tuple(x if on else zero for x, on in zip(out, live, strict=True))
 
 
-_importance_scan.defvjp(_importance_scan_fwd, _importance_scan_bwd)
+# the tangent map as a primitive transposed by the hand-written reverse pass
+_importance_linear = linear_primitive("volshade_importance_tangent", _importance_tangent,
+                                      _importance_transpose, n_residuals=11)
+
+
+def _importance_scan_jvp(unroll, primals, tangents):
+    state, colors, alphas, importance = primals
+    final, stored = _stored_scan(state, colors, alphas, importance, unroll)
+    d_state = _importance_linear((*stored, *state, colors, alphas, importance), tangents,
+                                 unroll=unroll)
+    return final, ImportanceState(*d_state)
+
+
+_importance_scan.defjvp(_importance_scan_jvp, symbolic_zeros=True)
 
 
 def importance_finish(
@@ -749,8 +773,9 @@ def composite(
     compositing (eq. 8, :func:`importance_step`) otherwise, as a loop over the
     samples with all rays carried at once (on a CPU reading the samples in place;
     see the module docstring). Importance-aware gradients come from a hand-derived
-    reverse-mode adjoint of the ``lax.scan`` over the samples: ``jax.grad`` and
-    ``jax.vjp`` work, forward mode does not. They are not exact for transparent
+    reverse-mode adjoint of the ``lax.scan`` over the samples, the transpose of its
+    forward mode (JAX's through the scan): ``jax.grad``, ``jax.jvp`` and ``jax.jacfwd``
+    all work and agree. They are not exact for transparent
     samples in front of a ray's first visible one (see :func:`importance_step`):
     start fitted opacities above 0.
 

@@ -46,8 +46,16 @@ $M$.
 $H_i = H_{i+1} + 1 - \alpha_i H_{i+1}$ with $M I_l = H_0$, so the march carries
 one volume and each chunk of samples is one fused pass reading every sample once.
 
-**Reverse mode** is a hand-written VJP that recomputes instead of storing (the
-checkpointing idea, done by hand). Per direction one front-to-back pass keeps the
+**Forward mode** (``jax.jvp``, ``jax.jacfwd``) marches the tangent beside the values:
+back to front, $\dot H_i = \dot H_{i+1} (1 - \alpha_i) - \dot\alpha_i H_{i+1}$, with
+$\dot\alpha_i$ the same eight shifted reads of the opacity's tangent plus the
+opacity's slope along the ray times the sample's move $\dot s_i$ (from the radius and
+offset). It carries two volumes and costs about 2.7 forward passes (64^3, 16 rays of 16
+samples, a tangent in the radius or the opacity, on a 2-core CPU).
+
+**Reverse mode** is that map's transpose, written by hand, recomputing instead of
+storing (the checkpointing idea, done by hand; ``volshade._linear`` couples the two,
+so each mode runs its own pass). Per direction one front-to-back pass keeps the
 transmittance $T$ at each chunk start; the chunks are then visited in reverse,
 each recomputing its $T_i$ and sweeping back with the suffix sums
 $S_i = 1 + (1 - \alpha_{i+1}) S_{i+1}$, so $\partial (M I_l)/\partial \alpha_i =
@@ -55,14 +63,13 @@ $S_i = 1 + (1 - \alpha_{i+1}) S_{i+1}$, so $\partial (M I_l)/\partial \alpha_i =
 of a shifted read is the opposite shift, so the backward pass is gather- and
 scatter-free as well; its memory is about $2\sqrt{M} + 8$ volumes for any $L$. Each
 direction's and each chunk's recomputation is checkpointed (``jax.checkpoint``), so
-that transposing the backward pass (``jax.linear_transpose``, which ``vs.fit`` uses for
-forward mode) recomputes them too, instead of storing the recomputed opacities of
-every direction and sample (a fit of the half-resolution head, 42 rays of 16 samples:
-15.1 GB peak, against 1.06 GB now).
+that transposing the backward pass (``jax.linear_transpose`` of a VJP, how ``vs.fit``
+built forward mode before it had its own) recomputes them too, instead of storing the
+recomputed opacities of every direction and sample (a fit of the half-resolution head,
+42 rays of 16 samples: 15.1 GB peak, against 1.06 GB then).
 (A variant that stored each chunk's reads was faster on CPU but slower and twice
-as memory-hungry on an H200, so it was not kept.) Forward mode (``jax.jvp``) is not
-available through the custom VJP (optimistix least-squares solvers then need
-``options=dict(jac="bwd")``); ``directions`` are not differentiated.
+as memory-hungry on an H200, so it was not kept.) ``directions`` are not
+differentiated.
 
 **On a GPU** ``implementation="pallas"`` runs the same march, values and
 gradients, as Pallas (Triton) kernels in which one program marches all rays of a
@@ -95,10 +102,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.custom_derivatives import SymbolicZero
 from jax.scipy.signal import fftconvolve
 
 from . import _checks
 from . import directions as _directions
+from ._linear import jvp_of_nonzero, linear_primitive
 from ._numerics import correct_opacity, scaled_down
 from ._types import Array, ArrayLike, Float, Volume
 
@@ -349,11 +358,13 @@ def _reverse_step(cotangent, transmittance, suffix_next, alpha, slope, valid, st
             acc_radius + coef * g_slope)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3))
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
 def _occlusion_sum(pad, shape, correction, samples, source, directions, weights, radius,
                    offset):
     """``sum_l w_l occ_l`` over the directions for one window of ``shape``, where
-    ``occ_l = M - H_0 = M (1 - I_l)``."""
+    ``occ_l = M - H_0 = M (1 - I_l)``. Forward mode is :func:`_occlusion_sum_tangent`,
+    reverse mode its transpose :func:`_occlusion_sum_transpose` (``directions`` are held
+    constant)."""
     _, distances, valid, step = _sample_table(samples, radius, offset)
 
     def body(total, direction_weight):
@@ -366,15 +377,74 @@ def _occlusion_sum(pad, shape, correction, samples, source, directions, weights,
     return total
 
 
-def _occlusion_sum_fwd(pad, shape, correction, samples, source, directions, weights, radius,
-                       offset):
-    out = _occlusion_sum(pad, shape, correction, samples, source, directions, weights, radius,
-                         offset)
-    return out, (source, directions, weights, radius, offset)
+def _occlusion_sum_tangent(source, directions, weights, radius, offset, d_source, d_weights,
+                           d_radius, d_offset, *, pad, shape, correction, samples, live):
+    r"""The JVP of :func:`_occlusion_sum`, by one back-to-front march per direction that
+    carries the tangent of the Horner sum (:func:`_horner_chunks`) beside it:
+
+    $$ \dot H_i = \dot H_{i+1} (1 - v_i \alpha'_i) - v_i \dot\alpha'_i H_{i+1},
+    \qquad \dot{occ}_l = -\dot H_0, $$
+
+    with $\dot\alpha_i$ the shifted read of $\dot{\mathrm{source}}$ (the same eight
+    windows and weights) plus the opacity's slope along the ray times
+    $\dot s_i = \frac{i + 1/2}{M} \dot R + (1 - \frac{i + 1/2}{M}) \dot a$, and through
+    the opacity correction the step ratio's tangent $(\dot R - \dot a)/M$. Two volumes
+    are carried and each chunk of samples is one fused pass, as in the forward march.
+    ``live`` flags the tangents ``(d_source, d_weights, d_radius, d_offset)`` that are
+    not zero; the others are scalar placeholders, not read.
+    """
+    dtype = source.dtype
+    index, distances, valid, step = _sample_table(samples, radius, offset)
+    coef = (index.astype(dtype) + 0.5) / samples
+    d_distances = coef * d_radius + (1 - coef) * d_offset
+    d_step = (d_radius - d_offset) / samples
+    moves = live[2] or live[3]
+
+    def body(total, inputs):
+        direction, weight, d_weight = inputs
+
+        def sample(carry, inputs):
+            horner, d_horner = carry
+            distance, d_distance, is_valid = inputs
+            at = distance * direction
+            frac, _, slices = _corner_slices(source, pad, shape, at, direction)
+            values = [slices[c] for c in _CORNERS]
+            alpha = _blend_corners(frac, values, exact=correction)
+            d_alpha = jnp.zeros_like(alpha)
+            if moves:
+                d_alpha = d_distance * _weighted_sum(_corner_slopes(frac, direction), values)
+            if live[0]:
+                _, _, d_slices = _corner_slices(d_source, pad, shape, at, direction)
+                d_alpha = d_alpha + _weighted_sum([w for _, w in _corner_weights(frac)],
+                                                  [d_slices[c] for c in _CORNERS])
+            if correction:
+                alpha, d_alpha = jax.jvp(correct_opacity,
+                                         (alpha, jnp.broadcast_to(step, alpha.shape)),
+                                         (d_alpha, jnp.broadcast_to(d_step, alpha.shape)))
+            return (horner + is_valid * (1 - alpha * horner),
+                    d_horner * (1 - is_valid * alpha) - is_valid * d_alpha * horner), None
+
+        def chunk(carry, inputs):
+            carry, _ = lax.scan(sample, carry, inputs, reverse=True, unroll=True)
+            return carry, None
+
+        init = (jnp.ones(shape, dtype), jnp.zeros(shape, dtype))
+        (horner, d_horner), _ = lax.scan(chunk, init, (distances, d_distances, valid),
+                                         reverse=True)
+        total = total - weight * d_horner
+        return (total + d_weight * (samples - horner) if live[1] else total), None
+
+    d_weights = jnp.broadcast_to(d_weights, weights.shape)
+    total, _ = lax.scan(body, jnp.zeros(shape, dtype), (directions, weights, d_weights))
+    return (total,)
 
 
-def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
-    r"""Reverse mode by recomputation: memory about $2\sqrt{M} + 8$ volumes, for any $L$.
+def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotangent, *, pad,
+                             shape, correction, samples, live):
+    r"""The transpose of :func:`_occlusion_sum_tangent` (reverse mode), by recomputation:
+    memory about $2\sqrt{M} + 8$ volumes, for any $L$. Returns the cotangents of
+    ``(source, weights, radius, offset)``; those that ``live`` marks as not wanted are
+    scalar zeros, and the opacity's (the adjoint reads) is then not accumulated.
 
     With $T_{i+1} = T_i (1 - v_i \alpha'_i)$ and $occ = \sum_j v_j (1 - T_{j+1})$,
     $\partial occ / \partial \alpha'_i = v_i T_i S_i$ with the suffix sum
@@ -385,9 +455,7 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
     radius and offset cotangents are accumulated as volumes and reduced once:
     $\partial s_i / \partial R = (i + \frac12)/M$, $\partial s_i / \partial a = 1 -
     (i + \frac12)/M$, and the step ratio $(R - a)/M$ of the opacity correction.
-    ``directions`` get no cotangent (``lao`` documents them as not differentiated).
     """
-    source, directions, weights, radius, offset = residuals
     dtype = source.dtype
     index, distances, valid, step = _sample_table(samples, radius, offset)
     coef_radius = (index.astype(dtype) + 0.5) / samples
@@ -419,8 +487,9 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
                 g_alpha, suffix_next, acc_slope, acc_radius = _reverse_step(
                     ct, transmittance, suffix_next, alpha, slope, is_valid, step, coef,
                     acc_slope, acc_radius, samples=samples, correction=correction)
-                d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad, offset_vec,
-                                                          direction)
+                if live[0]:
+                    d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad,
+                                                              offset_vec, direction)
                 return (suffix_next, d_source, acc_slope, acc_radius), None
 
             state, _ = lax.scan(sample_bwd, state, (transmittances, dists, valids, coefs),
@@ -435,16 +504,32 @@ def _occlusion_sum_bwd(pad, shape, correction, samples, residuals, cotangent):
                                   (starts, distances, valid, coef_radius), reverse=True)
         return tuple(carry), d_weight
 
-    init = (jnp.zeros(source.shape, dtype), jnp.zeros(shape, dtype), jnp.zeros(shape, dtype))
+    d_source = jnp.zeros(source.shape if live[0] else (), dtype)
+    init = (d_source, jnp.zeros(shape, dtype), jnp.zeros(shape, dtype))
     (d_source, acc_slope, acc_radius), d_weights = lax.scan(
         jax.checkpoint(direction_bwd), init, (directions, weights))
     d_radius = jnp.sum(acc_radius)
     d_offset = jnp.sum(acc_slope) - d_radius
-    return (d_source, jnp.zeros_like(directions), d_weights, d_radius.astype(radius.dtype),
-            d_offset.astype(offset.dtype))
+    zero = jnp.zeros((), dtype)
+    return (d_source, d_weights if live[1] else zero, d_radius if live[2] else zero,
+            d_offset if live[3] else zero)
 
 
-_occlusion_sum.defvjp(_occlusion_sum_fwd, _occlusion_sum_bwd)
+# the tangent map as a primitive transposed by the hand-written reverse mode
+# (``directions`` are among its residuals: they are not differentiated)
+_occlusion_tangent = linear_primitive("volshade_lao_tangent", _occlusion_sum_tangent,
+                                      _occlusion_sum_transpose, n_residuals=5)
+
+
+def _occlusion_sum_jvp(pad, shape, correction, samples, primals, tangents):
+    out = _occlusion_sum(pad, shape, correction, samples, *primals)
+    (tangent,) = _occlusion_tangent(
+        primals, (tangents[0], *tangents[2:]),  # no derivative in the directions
+        pad=pad, shape=shape, correction=correction, samples=samples)
+    return out, tangent
+
+
+_occlusion_sum.defjvp(_occlusion_sum_jvp, symbolic_zeros=True)
 
 
 def _march(source, pad, shape, directions, weights, radius, offset, samples,
@@ -549,10 +634,10 @@ def _bricked(alpha, active, pad, brick, march) -> tuple[Array, Array]:
     return result[crop], skipped[crop]
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
 def _skipped_gradient(pad, samples, correction, skipped, alpha, directions, weights, radius,
                       offset) -> Array:
-    r"""Zero, carrying the gradient w.r.t. ``alpha`` of the AO of ``skipped`` voxels.
+    r"""Zero, carrying the derivative w.r.t. ``alpha`` of the AO of ``skipped`` voxels.
 
     A skipped voxel $x$ has no opacity within reach, so its AO is 1 whatever the
     radius, offset and weights, but not whatever the opacity: raising $\alpha$ at a
@@ -561,23 +646,21 @@ def _skipped_gradient(pad, samples, correction, skipped, alpha, directions, weig
     $\partial \mathrm{AO}(x) / \partial \alpha(x + d) = -\frac{\kappa}{M} K(d)$,
     $K(d) = \sum_l \hat w_l \sum_i (M - 1 - i)\, w_c(s_i l)$ over the trilinear
     corners $\lfloor s_i l \rfloor + c = d$ ($\kappa$ the step ratio with opacity
-    correction, else 1). The backward pass applies it to the skipped voxels'
-    cotangent as one FFT convolution, whatever $L$ and $M$, so bricked gradients
-    equal unbricked ones and skipping stays cheap in reverse mode too.
+    correction, else 1). Forward mode applies it to the opacity's tangent as one FFT
+    correlation, and reverse mode (its transpose) to the skipped voxels' cotangent as
+    one FFT convolution, whatever $L$ and $M$, so bricked derivatives equal unbricked
+    ones and skipping stays cheap in both modes.
     """
     del pad, samples, correction, skipped, directions, weights, radius, offset
     return jnp.zeros_like(alpha)
 
 
-def _skipped_gradient_fwd(pad, samples, correction, skipped, alpha, directions, weights,
-                          radius, offset):
-    out = _skipped_gradient(pad, samples, correction, skipped, alpha, directions, weights,
-                            radius, offset)
-    return out, (skipped, directions, weights, radius, offset)
-
-
-def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
-    skipped, directions, weights, radius, offset = residuals
+def _skipped_gradient_jvp(pad, samples, correction, primals, tangents):
+    skipped, alpha, directions, weights, radius, offset = primals
+    out = jnp.zeros_like(alpha)
+    d_alpha = tangents[1]
+    if isinstance(d_alpha, SymbolicZero):  # the AO of a skipped voxel moves with nothing else
+        return out, out
     index, distances, valid, step = _sample_table(samples, radius, offset)
     suffix = valid * (samples - 1 - index).astype(valid.dtype)
     positions = distances.reshape(-1)[:, None, None] * directions[None]  # (samples, L, 3)
@@ -585,7 +668,7 @@ def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
     frac = positions - floor
     base = floor.astype(jnp.int32) + jnp.asarray(pad)[None, None, :]
     scale = suffix.reshape(-1)[:, None] * weights[None]
-    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), cotangent.dtype)
+    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), alpha.dtype)
     for corner, weight in _corner_weights(tuple(frac[..., ax] for ax in range(3))):
         # offsets beyond the padding reach no voxel; send them past the end to be
         # dropped (a negative index would wrap around, like NumPy's)
@@ -595,13 +678,13 @@ def _skipped_gradient_bwd(pad, samples, correction, residuals, cotangent):
         where = tuple(jnp.where(outside, 2 * p + 1, w) for w, p in zip(where, pad, strict=True))
         kernel = kernel.at[where].add((scale * weight).reshape(-1), mode="drop")
     kappa = step if correction else 1
-    d_alpha = -(kappa / samples) * fftconvolve(
-        jnp.where(skipped, cotangent, 0), kernel, mode="same")
-    return (None, d_alpha, jnp.zeros_like(directions),
-            jnp.zeros_like(weights), jnp.zeros_like(radius), jnp.zeros_like(offset))
+    # sum_d K(d) d_alpha(x + d): a convolution with the kernel flipped (it is centred and
+    # of odd size, so mode "same" keeps it aligned)
+    correlated = fftconvolve(d_alpha, kernel[::-1, ::-1, ::-1], mode="same")
+    return out, jnp.where(skipped, -(kappa / samples) * correlated, 0)
 
 
-_skipped_gradient.defvjp(_skipped_gradient_fwd, _skipped_gradient_bwd)
+_skipped_gradient.defjvp(_skipped_gradient_jvp, symbolic_zeros=True)
 
 
 # --------------------------------------------------------------------------- public API
@@ -813,11 +896,10 @@ def lao(
             (normalised here; e.g. ``volshade.directions.icosphere(1)``), or an int
             ``L`` meaning ``volshade.directions.fibonacci(L)``. Static configuration:
             not differentiated (``lao`` stops their gradient).
-        radius: sphere radius $R$ in voxels; dynamic and differentiable (in reverse
-            mode, ``jax.grad``/``jax.vjp``/``jax.jacrev``: the gradient is a custom
-            VJP, so ``jax.jvp``, ``jax.jacfwd`` and ``jax.hessian`` fail, here and in
-            renders with LAO). Where a sample lies on a voxel plane (trilinear
-            interpolation has a kink there) the gradient is the derivative from above.
+        radius: sphere radius $R$ in voxels; dynamic and differentiable, in forward
+            and reverse mode (``implementation="pallas"``: reverse mode only). Where a
+            sample lies on a voxel plane (trilinear interpolation has a kink there) the
+            derivative is the one from above.
         offset: initial offset $a$ in voxels, ``0 <= offset < radius``; dynamic and
             differentiable (from above where a sample lies on a voxel plane).
         samples: $M$, the number of segments of the shell (static, ``>= 1``);
@@ -951,24 +1033,23 @@ def _one_at_a_time(fn):
     3.0x (``python -m benchmarks.run lao --quick``, ``docs/results/bench_cpu_lao.json``).
 
     The loop (``jax.custom_batching.sequential_vmap``) has no derivative of its own, so
-    ``fn``'s reverse-mode gradient is given as a custom VJP that runs ``fn`` again for
-    its residuals, batched as usual (both branches under ``vmap``): a loop there would
-    have no transpose, which forward mode built from the VJP (``vs.fit``) needs. The
-    forward pass and gradient of one bricked sparse 96^3 volume took 0.39-0.40 s
-    instead of 0.34 s."""
+    ``fn``'s is given as a custom JVP: ``fn``'s own, batched as usual (both branches
+    under ``vmap``), whose transpose is reverse mode (a loop would have no transpose).
+    The arrays without a tangent (of the arguments, pytrees such as a clip included)
+    are held constant, so that, e.g., a derivative in the radius alone does not march a
+    zero opacity tangent. The forward pass and gradient of a bricked sparse 96^3 volume
+    (16 rays of 16 samples, R = 8, bricks of 16) took 0.279 s, against 0.270 s when the
+    gradient was a custom VJP that ran ``fn`` again (interleaved, in one process)."""
     forward = jax.custom_batching.sequential_vmap(fn)
 
-    @jax.custom_vjp
+    @jax.custom_jvp
     def wrapped(*args):
         return forward(*args)
 
-    def wrapped_fwd(*args):
-        return forward(*args), args
+    def wrapped_jvp(primals, tangents):
+        return forward(*primals), jvp_of_nonzero(fn, primals, tangents)[1]
 
-    def wrapped_bwd(args, g):
-        return jax.vjp(fn, *args)[1](g)
-
-    wrapped.defvjp(wrapped_fwd, wrapped_bwd)
+    wrapped.defjvp(wrapped_jvp, symbolic_zeros=True)
     return wrapped
 
 
