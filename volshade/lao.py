@@ -1047,7 +1047,10 @@ def _one_at_a_time(fn):
         return forward(*args)
 
     def wrapped_jvp(primals, tangents):
-        return forward(*primals), jvp_of_nonzero(fn, primals, tangents)[1]
+        # the values through ``wrapped``, so that a derivative of this rule (a second
+        # derivative) comes here again: JAX 0.10's sequential_vmap fails under a vmap of
+        # its JVP ("scan got no values to scan over"), which jax.hessian is
+        return wrapped(*primals), jvp_of_nonzero(fn, primals, tangents)[1]
 
     wrapped.defjvp(wrapped_jvp, symbolic_zeros=True)
     return wrapped
