@@ -411,6 +411,36 @@ def test_importance_forward_mode_equals_reverse_mode_on_hard_cases(dtype):
         assert float(jnp.max(jnp.abs(fwd[2]))) > 1e-3  # the importances move the colour
 
 
+@pytest.mark.parametrize("axes", [(0, None, 0), (None, 0, 0), (0, 0, None), (None, None, 0),
+                                  (0, None, None)])
+def test_importance_derivatives_under_vmap_of_some_arguments(axes):
+    # vmapped over some inputs only, some outputs of the scan are not batched (over the
+    # colours alone, the transmittance): their values and tangents must agree on that,
+    # and the cotangent of an unbatched output is not counted once per element (found by
+    # a review: a crash, and before forward mode a wrong gradient); against a loop
+    rng = np.random.default_rng(31)
+    full = (jnp.asarray(rng.uniform(0.05, 1, (2, 6, 9, 3))),
+            jnp.asarray(rng.uniform(0.1, 0.8, (2, 6, 9))), jnp.asarray(rng.normal(size=(2, 6, 9))))
+    args = tuple(x if ax is not None else x[0] for x, ax in zip(full, axes, strict=True))
+    w = jnp.asarray(rng.normal(size=(6, 4)))
+
+    def f(c, a, i):
+        return jnp.sum(w * composite(c, a, importance=i))
+
+    def element(b, *xs):
+        return f(*(x[b] if ax is not None else x for x, ax in zip(xs, axes, strict=True)))
+
+    grad = jax.jit(jax.grad(lambda *xs: jnp.sum(jnp.sin(jax.vmap(f, axes)(*xs))), (0, 1, 2)))
+    want = jax.grad(lambda *xs: sum(jnp.sin(element(b, *xs)) for b in range(2)), (0, 1, 2))
+    _assert_grads_equal(grad(*args), want(*args), 1e-12)
+    ones = tuple(jnp.ones_like(x) for x in args)
+    tangent = jax.jvp(jax.vmap(f, axes), args, ones)[1]
+    for b in range(2):
+        np.testing.assert_allclose(
+            float(tangent[b]), float(jax.jvp(lambda *xs, b=b: element(b, *xs), args, ones)[1]),
+            rtol=1e-12)
+
+
 def test_custom_vjp_any_state_cotangent():
     # the adjoint of the scan for any cotangent of the final state (P and delta apart) and a
     # nonempty initial state, against JAX's reverse mode through importance_step

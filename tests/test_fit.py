@@ -1,7 +1,8 @@
 """Fitting with optimistix: parameters recovered from targets made with known values.
 
-LAO's gradient is a custom VJP (reverse mode only): ``vs.fit`` gives the residuals a
-JVP rule built from their VJP, which least-squares solvers and minimisers use.
+Least-squares solvers build the Jacobian in forward mode through the render (LAO's and
+the importance compositor's tangent passes), minimisers their gradients in reverse
+mode.
 """
 
 import re

@@ -674,9 +674,9 @@ def _importance_transpose(c_acc, t_acc, gap, at_peak, color, transmittance, peak
     carry = (jnp.ones_like(cotangent.transmittance), cotangent.transmittance,
              cotangent.importance_offset,
              cotangent.peak_importance - cotangent.importance_offset)
-    # (checkpointed: this pass is linear in the cotangent, and its transpose, forward
-    # mode built from it, would otherwise store every step's non-linear values: 3.3x
-    # the gradient's temporaries, now 1.8x)
+    # (checkpointed: JAX's derivatives of this pass, second derivatives, would otherwise
+    # store every step's non-linear values; its transpose, when forward mode was built
+    # from it, stored 3.3x the gradient's temporaries, 1.8x checkpointed)
     (scale, lam_t, lam_k, lam_p), (color_scale, lam_alpha, lam_imp) = jax.lax.scan(
         jax.checkpoint(body), carry,
         (t_acc, gap, at_peak, jnp.moveaxis(alphas, -1, 0), dot_acc, dot_sample),

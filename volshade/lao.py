@@ -63,10 +63,12 @@ $S_i = 1 + (1 - \alpha_{i+1}) S_{i+1}$, so $\partial (M I_l)/\partial \alpha_i =
 of a shifted read is the opposite shift, so the backward pass is gather- and
 scatter-free as well; its memory is about $2\sqrt{M} + 8$ volumes for any $L$. Each
 direction's and each chunk's recomputation is checkpointed (``jax.checkpoint``), so
-that transposing the backward pass (``jax.linear_transpose`` of a VJP, how ``vs.fit``
-built forward mode before it had its own) recomputes them too, instead of storing the
-recomputed opacities of every direction and sample (a fit of the half-resolution head,
-42 rays of 16 samples: 15.1 GB peak, against 1.06 GB then).
+that JAX's own derivatives of the backward pass (second derivatives) recompute them
+too, instead of storing the recomputed opacities of every direction and sample (as the
+backward pass's transpose did when ``vs.fit`` built forward mode from it: a fit of the
+half-resolution head, 42 rays of 16 samples, 15.1 GB peak, against 1.06 GB checkpointed;
+a transposed VJP now runs the forward-mode march). Second derivatives in the opacity are
+not available with bricks (:func:`_skipped_gradient`).
 (A variant that stored each chunk's reads was faster on CPU but slower and twice
 as memory-hungry on an H200, so it was not kept.) ``directions`` are not
 differentiated.
@@ -102,7 +104,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.custom_derivatives import SymbolicZero
 from jax.scipy.signal import fftconvolve
 
 from . import _checks
@@ -312,17 +313,19 @@ def _horner_chunks(source, pad, shape, direction, distances, valid, ratio, corre
     return lax.scan(chunk, jnp.ones(shape, source.dtype), (distances, valid), reverse=True)
 
 
-def _forward_chunks(source, pad, shape, direction, distances, valid, ratio, correction):
-    """March one direction: ``occ = sum_i v_i (1 - T_{i+1})`` (``= M (1 - I_l)``) and the
-    transmittance at each chunk start."""
+def _forward_chunks(source, pad, shape, direction, distances, valid, ratio, correction,
+                    occlusion: bool = True):
+    """March one direction: ``occ = sum_i v_i (1 - T_{i+1})`` (``= M (1 - I_l)``; a
+    scalar 0 unless ``occlusion``) and the transmittance at each chunk start."""
 
     def step(carry, sample):
-        transmittance, occlusion = carry
+        transmittance, occ = carry
         distance, is_valid = sample
         alpha = _sample_opacity(source, pad, shape, distance, direction, ratio, correction)
         transmittance = transmittance * (1 - is_valid * alpha)
-        occlusion = occlusion + is_valid * (1 - transmittance)
-        return (transmittance, occlusion), None
+        if occlusion:
+            occ = occ + is_valid * (1 - transmittance)
+        return (transmittance, occ), None
 
     def chunk(carry, samples):
         start = carry[0]
@@ -330,14 +333,14 @@ def _forward_chunks(source, pad, shape, direction, distances, valid, ratio, corr
         return carry, start
 
     dtype = source.dtype
-    init = (jnp.ones(shape, dtype), jnp.zeros(shape, dtype))
-    (_, occlusion), starts = lax.scan(chunk, init, (distances, valid))
-    return occlusion, starts
+    init = (jnp.ones(shape, dtype), jnp.zeros(shape if occlusion else (), dtype))
+    (_, occ), starts = lax.scan(chunk, init, (distances, valid))
+    return occ, starts
 
 
 def _reverse_step(cotangent, transmittance, suffix_next, alpha, slope, valid, step, coef,
                   acc_slope, acc_radius, *, samples, correction):
-    r"""One sample of the reverse sweep (see :func:`_occlusion_sum_bwd`), shared with
+    r"""One sample of the reverse sweep (see :func:`_occlusion_sum_transpose`), shared with
     the Pallas kernels: the cotangent $g$ of the opacity $\alpha_i$ (through the
     opacity correction), the suffix sum carried to the previous sample, and the
     accumulated slope and radius terms ($\partial s_i / \partial R$ = ``coef``).
@@ -462,8 +465,9 @@ def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotang
 
     def direction_bwd(carry, direction_weight):
         direction, weight = direction_weight
+        # (the weights' cotangent alone needs the occlusion)
         occlusion, starts = _forward_chunks(source, pad, shape, direction, distances, valid,
-                                            step, correction)
+                                            step, correction, occlusion=live[1])
         d_weight = jnp.sum(cotangent * occlusion)
         ct = weight * cotangent
 
@@ -484,28 +488,34 @@ def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotang
                 offset_vec = distance * direction
                 alpha, slope = _trilinear_shifted_with_slope(source, pad, shape, offset_vec,
                                                              direction, exact=correction)
-                g_alpha, suffix_next, acc_slope, acc_radius = _reverse_step(
+                g_alpha, suffix_next, slope_sum, radius_sum = _reverse_step(
                     ct, transmittance, suffix_next, alpha, slope, is_valid, step, coef,
                     acc_slope, acc_radius, samples=samples, correction=correction)
                 if live[0]:
                     d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad,
                                                               offset_vec, direction)
+                # (a sum that no wanted cotangent reads stays the scalar it started as)
+                if live[3]:
+                    acc_slope = slope_sum
+                if live[2] or live[3]:
+                    acc_radius = radius_sum
                 return (suffix_next, d_source, acc_slope, acc_radius), None
 
             state, _ = lax.scan(sample_bwd, state, (transmittances, dists, valids, coefs),
                                 reverse=True)
             return state, None
 
-        # (checkpointed, as the directions below: this pass is linear in the cotangent,
-        # and its transpose, vs.fit's forward mode, would otherwise store every
-        # iteration's recomputed opacities)
+        # (checkpointed, as the directions below: JAX's derivatives of this pass, second
+        # derivatives, would otherwise store every iteration's recomputed opacities)
         (_, *carry), _ = lax.scan(jax.checkpoint(chunk_bwd),
                                   (jnp.zeros(shape, dtype), *carry),
                                   (starts, distances, valid, coef_radius), reverse=True)
         return tuple(carry), d_weight
 
-    d_source = jnp.zeros(source.shape if live[0] else (), dtype)
-    init = (d_source, jnp.zeros(shape, dtype), jnp.zeros(shape, dtype))
+    # the cotangents that ``live`` does not ask for are not accumulated: a primitive's
+    # body is not pruned by JAX as the inline code was (the offset's sum, one volume)
+    init = tuple(jnp.zeros(size if wanted else (), dtype) for size, wanted in (
+        (source.shape, live[0]), (shape, live[3]), (shape, live[2] or live[3])))
     (d_source, acc_slope, acc_radius), d_weights = lax.scan(
         jax.checkpoint(direction_bwd), init, (directions, weights))
     d_radius = jnp.sum(acc_radius)
@@ -655,12 +665,9 @@ def _skipped_gradient(pad, samples, correction, skipped, alpha, directions, weig
     return jnp.zeros_like(alpha)
 
 
-def _skipped_gradient_jvp(pad, samples, correction, primals, tangents):
-    skipped, alpha, directions, weights, radius, offset = primals
-    out = jnp.zeros_like(alpha)
-    d_alpha = tangents[1]
-    if isinstance(d_alpha, SymbolicZero):  # the AO of a skipped voxel moves with nothing else
-        return out, out
+def _skipped_kernel(pad, samples, correction, directions, weights, radius, offset, dtype):
+    r"""$-\frac{\kappa}{M} K$ of :func:`_skipped_gradient`, ``(2 pad + 1)`` per axis,
+    centred: the derivative of a skipped voxel's AO in the opacity at offset ``d``."""
     index, distances, valid, step = _sample_table(samples, radius, offset)
     suffix = valid * (samples - 1 - index).astype(valid.dtype)
     positions = distances.reshape(-1)[:, None, None] * directions[None]  # (samples, L, 3)
@@ -668,7 +675,7 @@ def _skipped_gradient_jvp(pad, samples, correction, primals, tangents):
     frac = positions - floor
     base = floor.astype(jnp.int32) + jnp.asarray(pad)[None, None, :]
     scale = suffix.reshape(-1)[:, None] * weights[None]
-    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), alpha.dtype)
+    kernel = jnp.zeros(tuple(2 * p + 1 for p in pad), dtype)
     for corner, weight in _corner_weights(tuple(frac[..., ax] for ax in range(3))):
         # offsets beyond the padding reach no voxel; send them past the end to be
         # dropped (a negative index would wrap around, like NumPy's)
@@ -678,10 +685,46 @@ def _skipped_gradient_jvp(pad, samples, correction, primals, tangents):
         where = tuple(jnp.where(outside, 2 * p + 1, w) for w, p in zip(where, pad, strict=True))
         kernel = kernel.at[where].add((scale * weight).reshape(-1), mode="drop")
     kappa = step if correction else 1
-    # sum_d K(d) d_alpha(x + d): a convolution with the kernel flipped (it is centred and
-    # of odd size, so mode "same" keeps it aligned)
+    return -(kappa / samples) * kernel
+
+
+def _skipped_tangent(skipped, alpha, directions, weights, radius, offset, d_alpha, *, pad,
+                     samples, correction, live):
+    r"""The skipped voxels' AO tangent: $\sum_d K(d)\, \dot\alpha(x + d)$, a
+    convolution with the kernel flipped (centred and of odd size, so mode "same" keeps it
+    aligned)."""
+    if not live[0]:  # (a scalar placeholder)
+        return (jnp.zeros_like(alpha),)
+    kernel = _skipped_kernel(pad, samples, correction, directions, weights, radius, offset,
+                             alpha.dtype)
     correlated = fftconvolve(d_alpha, kernel[::-1, ::-1, ::-1], mode="same")
-    return out, jnp.where(skipped, -(kappa / samples) * correlated, 0)
+    return (jnp.where(skipped, correlated, 0),)
+
+
+def _skipped_transpose(skipped, alpha, directions, weights, radius, offset, cotangent, *, pad,
+                       samples, correction, live):
+    """The transpose of :func:`_skipped_tangent`: the skipped voxels' cotangent convolved
+    with the kernel. (The kernel is built again rather than kept from the forward pass:
+    the FFT of a padded kernel, 2.6 volumes at 48^3, would be stored between them.)"""
+    del live
+    kernel = _skipped_kernel(pad, samples, correction, directions, weights, radius, offset,
+                             alpha.dtype)
+    return (fftconvolve(jnp.where(skipped, cotangent, 0), kernel, mode="same"),)
+
+
+# the opacity is a residual held constant: the kernel is the derivative at zero opacity,
+# and the second derivative there is not zero
+_skipped_linear = linear_primitive(
+    "volshade_lao_skipped", _skipped_tangent, _skipped_transpose, n_residuals=6,
+    constant={1: "volshade.lao: second derivatives in the opacity are not available with "
+                 "`brick_size` (a skipped brick's derivative is taken at zero opacity); "
+                 "use brick_size=None for them."})
+
+
+def _skipped_gradient_jvp(pad, samples, correction, primals, tangents):
+    (tangent,) = _skipped_linear(primals, (tangents[1],), pad=pad, samples=samples,
+                                 correction=correction)
+    return jnp.zeros_like(primals[1]), tangent
 
 
 _skipped_gradient.defjvp(_skipped_gradient_jvp, symbolic_zeros=True)
@@ -917,8 +960,9 @@ def lao(
             infinite) to the opacity, ``radius`` and ``offset``.
         brick_size: if set, split the volume into bricks of this edge (voxels) and
             march only bricks with opacity within reach; the others get AO = 1
-            without any work. Results and gradients equal the unbricked path (the
-            skipped bricks' gradient w.r.t. ``alpha`` is one FFT convolution). It
+            without any work. Results and derivatives equal the unbricked path (the
+            skipped bricks' derivative w.r.t. ``alpha`` is one FFT convolution), but
+            for second derivatives in ``alpha``, which are refused with bricks. It
             pays on sparse volumes; when more than half of the bricks are active
             the whole volume is marched instead (decided at run time), since
             bricks then cost more than they save (``python -m benchmarks.run lao``
