@@ -179,3 +179,16 @@ def test_transposing_in_a_residual_is_refused():
 
     with pytest.raises(ValueError, match="linear only in its last 2 operands"):
         jax.linear_transpose(g, jnp.ones(5))(jnp.ones(5))
+
+
+def test_a_python_number_residual_keeps_the_outputs_dtype():
+    # a weakly typed residual (a Python float) beside float32 operands under x64: the
+    # primitive's abstract value dropped the weak type, so its outputs came out float64
+    # where the map gives float32, and jax.grad refused the rule (found by a review)
+    x = jnp.ones(2, jnp.float32)
+    tangent = jax.jvp(lambda x: _f(1.5, x, x), (x,), (x,))[1]
+    assert tangent.dtype == jnp.float32
+    grad = jax.jit(jax.grad(lambda x: jnp.sum(_f(1.5, x, x))))(x)
+    assert grad.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(grad), np.asarray(jax.grad(
+        lambda x: jnp.sum(_plain(1.5, x, x)))(x)), rtol=1e-6)  # (float32)

@@ -127,9 +127,12 @@ def linear_primitive(name: str, fn: Callable, transpose: Callable, n_residuals: 
             return _mapped(functools.partial(body, **static), levels)(*operands)
 
         def abstract_eval(*avals, levels, **static):
-            shapes = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in avals]
+            # (weak types kept: a Python-number residual must not widen the outputs)
+            shapes = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
+                      for a in avals]
             outs = jax.eval_shape(functools.partial(impl, levels=levels, **static), *shapes)
-            return [jax.core.ShapedArray(o.shape, o.dtype) for o in outs]
+            return [jax.core.ShapedArray(o.shape, o.dtype, weak_type=o.weak_type)
+                    for o in outs]
 
         def jvp(primals, tangents, *, levels, **static):
             res, lin = primals[:n_residuals], primals[n_residuals:]
