@@ -358,6 +358,32 @@ def test_forward_mode_is_the_transpose_of_reverse_mode(always_bricked):
         np.testing.assert_allclose(np.asarray(fwd), np.asarray(rev), rtol=1e-11, atol=1e-14)
 
 
+@pytest.mark.parametrize("correction", [False, True])
+def test_kept_and_recomputed_reverse_sweeps_agree(monkeypatch, correction):
+    # a CPU keeps each chunk's opacities for the reverse sweep, other platforms recompute
+    # them: the suite runs on a CPU, so the other sweep is run here by declaring no
+    # platform keeps them; every cotangent (opacity, weights, radius, offset), float64
+    lao_module = sys.modules[lao.__module__]  # (volshade.lao is also the function's name)
+    alpha = _random_alpha((11, 9, 7), 31, jnp.float64)
+    c = jnp.asarray(np.random.default_rng(32).standard_normal(alpha.shape))
+    dirs = vdirs.random_polar(5, key=jax.random.key(33))
+
+    def loss(a, w, r, o):
+        return jnp.sum(c * lao(a, directions=dirs, weights=w, radius=r, offset=o,
+                               samples=11, opacity_correction=correction))
+
+    args = (alpha, jnp.linspace(0.5, 1.5, 5), jnp.float64(4.3), jnp.float64(0.7))
+    grads = {}
+    for platforms in (("cpu",), ()):
+        monkeypatch.setattr(lao_module, "_KEEP_CHUNK_READS_ON", platforms)
+        jax.clear_caches()  # (the transpose is traced again)
+        grads[platforms] = jax.jit(jax.grad(loss, (0, 1, 2, 3)))(*args)
+    jax.clear_caches()
+    for kept, recomputed in zip(grads[("cpu",)], grads[()], strict=True):
+        np.testing.assert_allclose(np.asarray(kept), np.asarray(recomputed), rtol=1e-12,
+                                   atol=1e-14)
+
+
 @pytest.mark.slow
 def test_hessian_in_radius_and_offset(always_bricked):
     # jax.hessian is forward over reverse: JAX's forward mode through the hand-written
