@@ -638,8 +638,8 @@ def _stored_scan(state, colors, alphas, importance, unroll):
 def _importance_tangent(c_acc, t_acc, gap, at_peak, color, transmittance, peak, offset,
                         colors, alphas, importance, *tangents, unroll, live):
     """The JVP of :func:`_importance_scan` in the tangents that ``live`` flags (of the
-    state's four arrays, the colours, opacities and importances; the others are scalar
-    placeholders), by JAX's forward mode through the scan."""
+    state's four arrays, the colours, opacities and importances; the others are zero,
+    passed as scalar zeros and not read), by JAX's forward mode through the scan."""
     del c_acc, t_acc, gap, at_peak  # (what the transpose reads)
 
     def scan(c, t, p, o, cs, a, i):

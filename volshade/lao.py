@@ -401,7 +401,7 @@ def _occlusion_sum_tangent(source, directions, weights, radius, offset, d_source
     the opacity correction the step ratio's tangent $(\dot R - \dot a)/M$. Two volumes
     are carried and each chunk of samples is one fused pass, as in the forward march.
     ``live`` flags the tangents ``(d_source, d_weights, d_radius, d_offset)`` that are
-    not zero; the others are scalar placeholders, not read.
+    not zero; the others are zero, passed as scalar zeros and not read.
     """
     dtype = source.dtype
     index, distances, valid, step = _sample_table(samples, radius, offset)
@@ -733,8 +733,7 @@ def _skipped_tangent(skipped, alpha, directions, weights, radius, offset, d_alph
     r"""The skipped voxels' AO tangent: $\sum_d K(d)\, \dot\alpha(x + d)$, a
     convolution with the kernel flipped (centred and of odd size, so mode "same" keeps it
     aligned)."""
-    if not live[0]:  # (a scalar placeholder)
-        return (jnp.zeros_like(alpha),)
+    del live  # (its one tangent is live: linear_primitive binds no map of zero tangents)
     kernel = _skipped_kernel(pad, samples, correction, directions, weights, radius, offset,
                              alpha.dtype)
     correlated = fftconvolve(d_alpha, kernel[::-1, ::-1, ::-1], mode="same")
