@@ -64,6 +64,7 @@ import numpy as np
 from jax import lax
 from jax.experimental import pallas as pl
 
+from ._linear import linear_primitive
 from ._numerics import correct_opacity
 from .lao import (
     _CORNERS,
@@ -73,6 +74,7 @@ from .lao import (
     _chunking,
     _corner_slopes,
     _corner_weights,
+    _occlusion_sum_tangent,
     _reverse_step,
     _weighted_sum,
 )
@@ -525,34 +527,61 @@ def _on_platform(fn, *args):
                                   default=functools.partial(fn, interpret=True))
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3, 4))
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4))
 def _occlusion_sum(pad, samples, correction, launch, brick, alpha, directions, weights, radius,
                    offset):
+    """The occlusion sum by the kernels. Forward mode is :func:`_tangent`, reverse mode
+    its transpose :func:`_transpose`, the reverse-mode kernels."""
     forward = functools.partial(_forward, pad=pad, samples=samples, correction=correction,
                                 launch=launch, brick=brick)
     return _on_platform(forward, alpha, directions, weights, radius, offset)
 
 
-def _occlusion_sum_fwd(pad, samples, correction, launch, brick, alpha, directions, weights,
-                       radius, offset):
-    out = _occlusion_sum(pad, samples, correction, launch, brick, alpha, directions, weights,
-                         radius, offset)
-    return out, (alpha, directions, weights, radius, offset)
+def _tangent(alpha, directions, weights, radius, offset, d_alpha, d_weights, d_radius,
+             d_offset, *, pad, samples, correction, launch, live):
+    """Forward mode: the XLA march's tangent (:func:`volshade.lao._occlusion_sum_tangent`)
+    on the padded opacity; there is no tangent kernel, so forward mode runs at the XLA
+    march's speed."""
+    del launch
+    widths = [(p, p) for p in pad]
+    d_source = jnp.pad(d_alpha, widths) if live[0] else d_alpha
+    return _occlusion_sum_tangent(jnp.pad(alpha, widths), directions, weights, radius,
+                                  offset, d_source, d_weights, d_radius, d_offset, pad=pad,
+                                  shape=alpha.shape, correction=correction, samples=samples,
+                                  live=live)
 
 
-def _occlusion_sum_bwd(pad, samples, correction, launch, brick, residuals, cotangent):
-    # every voxel's gradient is computed (a skipped tile's AO still depends on the
-    # opacity around it), so ``brick`` does not enter
-    del brick
-    alpha, directions, weights, radius, offset = residuals
+def _transpose(alpha, directions, weights, radius, offset, cotangent, *, pad, samples,
+               correction, launch, live):
+    """Reverse mode: the kernels' cotangents of ``(alpha, weights, radius, offset)``
+    (all four are computed; ``live`` does not enter). Every voxel's is computed: a
+    skipped tile's AO still depends on the opacity around it."""
+    del live
     backward = functools.partial(_backward, pad=pad, samples=samples, correction=correction,
                                  launch=launch)
-    d_alpha, d_weights, d_radius, d_offset = _on_platform(backward, *residuals, cotangent)
-    return (d_alpha, jnp.zeros_like(directions), d_weights.astype(weights.dtype),
-            d_radius.astype(radius.dtype), d_offset.astype(offset.dtype))
+    d_alpha, d_weights, d_radius, d_offset = _on_platform(
+        backward, alpha, directions, weights, radius, offset, cotangent)
+    return (d_alpha, d_weights.astype(weights.dtype), d_radius.astype(radius.dtype),
+            d_offset.astype(offset.dtype))
 
 
-_occlusion_sum.defvjp(_occlusion_sum_fwd, _occlusion_sum_bwd)
+# second derivatives would differentiate the kernels, which JAX cannot do: refused
+_SECOND = ("volshade.lao: second derivatives are not available with "
+           "implementation='pallas' (JAX cannot differentiate its kernels); use "
+           "implementation='xla' for them.")
+_tangent_map = linear_primitive("volshade_lao_pallas_tangent", _tangent, _transpose,
+                                n_residuals=5, constant=dict.fromkeys(range(5), _SECOND))
+
+
+def _occlusion_sum_jvp(pad, samples, correction, launch, brick, primals, tangents):
+    out = _occlusion_sum(pad, samples, correction, launch, brick, *primals)
+    (tangent,) = _tangent_map(
+        primals, (tangents[0], *tangents[2:]),  # no derivative in the directions
+        pad=pad, samples=samples, correction=correction, launch=launch)
+    return out, tangent
+
+
+_occlusion_sum.defjvp(_occlusion_sum_jvp, symbolic_zeros=True)
 
 
 def occlusion_sum(alpha, directions, weights, radius, offset, *, pad, samples: int,
@@ -561,7 +590,8 @@ def occlusion_sum(alpha, directions, weights, radius, offset, *, pad, samples: i
     r"""$\sum_l \hat w_l\, occ_l$ for the opacity volume ``alpha`` (unpadded), as
     :func:`volshade.lao._occlusion_sum` computes it for the source padded by ``pad``;
     ``samples`` must be at least 2. Differentiable in ``alpha``, ``weights``,
-    ``radius`` and ``offset`` (``directions`` get a zero cotangent). Computed in
+    ``radius`` and ``offset`` (``directions`` get a zero cotangent), in reverse mode by
+    the kernels and in forward mode by the XLA march's tangent; not twice. Computed in
     float32 at least and returned in the dtype of ``alpha``. With ``brick`` the
     forward skips the tiles whose bricks of that edge have no opacity within ``pad``
     voxels (their sum is 0); the gradient is computed everywhere."""

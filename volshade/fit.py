@@ -422,23 +422,6 @@ def _views(camera: Any, target: Any, weights: Any) -> list[tuple[Camera, Array, 
     return views
 
 
-def _refuse_pallas(scene: Scene) -> None:
-    """Refuse LAO by the Pallas kernels, whose custom VJP has no forward mode, which the
-    solvers use (a least-squares solver's Jacobian, a minimiser's ``jax.linearize``):
-    it failed deep inside the solver with JAX's "can't apply forward-mode autodiff"."""
-    def is_lao(node):
-        return isinstance(node, LocalAmbientOcclusion)
-
-    # every LAO the scene holds (its own, feature AO's), found wherever it lies
-    for keys, module in jax.tree_util.tree_flatten_with_path(scene, is_leaf=is_lao)[0]:
-        if is_lao(module) and module.implementation == "pallas":
-            path = jax.tree_util.keystr(keys)[1:]
-            raise ValueError(f"{_WHERE}: `{path}.implementation` is 'pallas', whose kernels "
-                             f"have no forward mode, which the solvers use; fit with "
-                             f"implementation='xla' (the same values and gradients), and "
-                             f"render the fitted scene with 'pallas'.")
-
-
 class _Problem(eqx.Module):
     """A fit's residuals as a function of the unconstrained parameters ``u``. A Module
     passed as optimistix's ``args``: its arrays are traced and its paths and bounds
@@ -628,8 +611,7 @@ def fit(
             (a background importance of ``-inf``), an LAO radius's upper bound above
             its ``max_radius``, targets or weights that do not match the cameras,
             targets far outside [0, 1] (beyond [-1, 2]: an image of 0-255; an integer
-            image is a ``TypeError``), a solver of another kind, LAO with
-            ``implementation="pallas"``.
+            image is a ``TypeError``), a solver of another kind.
         equinox.EquinoxRuntimeError: a parameter the render does not depend on at its
             initial value (every derivative of the image in it exactly 0: a weight of
             0 switches it off) and that the fit left there, named with the settings
@@ -650,7 +632,6 @@ def fit(
     if not isinstance(scene, Scene):
         raise TypeError(f"{_WHERE}: `scene` must be a volshade.Scene (the start of the fit), "
                         f"got {type(scene).__name__}.")
-    _refuse_pallas(scene)
     named, where, leaves = _parameters(scene, params)
     views = _views(camera, target, weights)
     max_steps = _checks.positive_int(max_steps, "max_steps", _WHERE)

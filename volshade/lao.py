@@ -85,7 +85,9 @@ $512^3$, $L = 54$, $M = 50$, $R = 50$; ``python -m benchmarks.run lao_pallas``) 
 marched 0.63 T samples/s against the XLA march's 0.23 T (0.58 s against 1.59 s, in
 one run), and forward plus the gradient w.r.t. opacity and radius took 4.7 s, 8.2x its
 forward (the XLA march's took 14.5 s, 9.1x, in another run on an H200), with the
-same values (2.4e-7) and gradients (1.3e-5 relative). It stays opt-in:
+same values (2.4e-7) and gradients (1.3e-5 relative). Forward mode has no kernel: it
+runs the XLA march's tangent pass beside the kernels' values (and so at its speed);
+second derivatives, which would differentiate the kernels, are refused. It stays opt-in:
 it holds four padded copies of the volume (the XLA forward, about three volumes in
 all), 29 volumes in reverse mode against 22.5, and Pallas' Triton backend is
 deprecated from JAX 0.11 in favour of Mosaic GPU.
@@ -979,7 +981,7 @@ def lao(
             ``L`` meaning ``volshade.directions.fibonacci(L)``. Static configuration:
             not differentiated (``lao`` stops their gradient).
         radius: sphere radius $R$ in voxels; dynamic and differentiable, in forward
-            and reverse mode (``implementation="pallas"``: reverse mode only). Where a
+            and reverse mode (``implementation="pallas"``: not twice). Where a
             sample lies on a voxel plane (trilinear interpolation has a kink there) the
             derivative is the one from above.
         offset: initial offset $a$ in voxels, ``0 <= offset < radius``; dynamic and
@@ -1016,8 +1018,9 @@ def lao(
             recompile, since the padding follows the radius.
         implementation: ``"xla"`` (the default) marches with fused shifted reads
             (see the module docstring); ``"pallas"`` uses Pallas kernels that march
-            every ray of a tile of voxels in registers, forward and in reverse mode
-            (``volshade._lao_pallas``), compiled by Triton on an NVIDIA GPU and run
+            every ray of a tile of voxels in registers, values and reverse mode
+            (``volshade._lao_pallas``; forward mode is the XLA march's tangent pass, and
+            second derivatives are refused), compiled by Triton on an NVIDIA GPU and run
             in Pallas' interpreter elsewhere (exact but slow: for tests). Both
             compute the same values and gradients (to rounding). With ``brick_size``
             the Pallas march skips every tile of voxels whose bricks have no opacity
@@ -1034,7 +1037,8 @@ def lao(
             direction set, ``samples < 1``, ``brick_size < 1``, ``max_radius`` not a
             finite number > 0, a non-finite ``radius`` or ``offset``,
             ``radius <= offset`` or ``offset < 0`` (at trace time when they are
-            numbers), an unknown ``implementation``.
+            numbers), an unknown ``implementation``; when traced, second derivatives
+            with ``implementation="pallas"``, or in ``alpha`` with ``brick_size``.
         TypeError: non-numeric inputs.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time):
             ``alpha`` outside ``[0, 1]`` or non-finite, ``radius <= offset``,
