@@ -356,7 +356,7 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
     then forward + gradient w.r.t. opacity and radius with the default launch, the
     fastest and the reverse-mode launches (``GRADIENT_LAUNCHES``; with opacity
     correction ``CORRECTED_GRADIENT_LAUNCHES``), the largest difference from the XLA
-    march (values and gradients), and
+    march (values and gradients), forward mode (a JVP: the XLA march's tangent pass), and
     empty-space skipping on a sparse ball of half the edge (``_pallas_bricks``). A
     launch that fails to compile is recorded with its error and skipped (a fault on
     the device ends the process: run this before the other GPU cases). On a CPU the
@@ -444,6 +444,13 @@ def run_gpu_pallas(n: int = 512, n_dirs: int = 54, samples: int = 50, radius: fl
         jnp.max(jnp.abs(g_alpha - x_alpha)) / jnp.max(jnp.abs(x_alpha)))
     ratios["pallas_grad_radius_rel_diff_vs_xla"] = float(jnp.abs(g_radius - x_radius)
                                                          / jnp.abs(x_radius))
+    # forward mode: the XLA march's tangent pass beside the default launch's values
+    jvp = jax.jit(lambda al, rr: jax.jvp(occlusion(pallas.Launch()), (al, rr),
+                                         (al, jnp.ones_like(rr))))
+    median = _timed_gradient(rows, "pallas forward mode, jvp(alpha, radius), default launch",
+                             jvp, alpha, r, repeats)
+    if median is not None and pallas.Launch() in timings:
+        ratios["pallas_jvp_over_forward"] = median / timings[pallas.Launch()]
     vol = alpha.size * 4
     ratios["pallas_grad_temp_over_volume"] = (
         both.lower(alpha, r).compile().memory_analysis().temp_size_in_bytes / vol)

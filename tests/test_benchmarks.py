@@ -51,6 +51,7 @@ def test_lao_pallas_benchmark_runs_every_case():
     assert ratios["pallas_max_abs_diff_vs_xla"] < 1e-6
     assert ratios["pallas_grad_alpha_max_rel_diff_vs_xla"] < 1e-5
     assert ratios["pallas_grad_radius_rel_diff_vs_xla"] < 1e-5
+    assert ratios["pallas_jvp_over_forward"] > 0
     assert "pallas_bricked_speedup_sparse_ball" in ratios
     for row in result["rows"]:
         if row["case"].startswith("agree:"):
