@@ -62,11 +62,15 @@ $S_i = 1 + (1 - \alpha_{i+1}) S_{i+1}$, so $\partial (M I_l)/\partial \alpha_i =
 -T_i S_i$ needs no division by $1 - \alpha_i$ (exact at $\alpha = 1$). The adjoint
 of a shifted read is the opposite shift, so the backward pass is gather- and
 scatter-free as well; its memory is about $2\sqrt{M} + 8$ volumes for any $L$. On a
-CPU each chunk's opacities are read once and kept for its sweep (about $3\sqrt{M} + 8$
-volumes: 20 against 17 at $M = 16$, 29 against 23 at $M = 50$): there XLA fuses each
+CPU each chunk's opacities are read once and kept for its sweep: there XLA fuses each
 sample's eight reads into every pass that uses the opacity, and forward plus the
 gradient w.r.t. opacity and radius took 15x the forward where it now takes 11.5x
-(64^3, 16 rays of 16 samples; with the opacity correction 12.7x and 6.8x; 2 cores). Each
+(64^3, 16 rays of 16 samples, 2 cores; with the opacity correction 12.7x and 6.8x).
+That costs memory, about $3\sqrt{M} + 8$ volumes, and $6\sqrt{M} + 8$ with the
+opacity correction, whose derivative's terms are kept too (64^3, 16 rays: 20.6 and
+32.6 against 17.3 and 20.3 at $M = 16$; 29.9 and 50.9 against 23.3 and 26.3 at
+$M = 50$), and compilation time (both sweeps are traced, and the kept one is unrolled:
+a gradient at 32^3 traced and compiled in 2.0-3.0 s against 1.1-1.4 s). Each
 direction's and each chunk's recomputation is checkpointed (``jax.checkpoint``), so
 that JAX's own derivatives of the backward pass (second derivatives) recompute them
 too, instead of storing the recomputed opacities of every direction and sample (as the
@@ -454,8 +458,9 @@ def _occlusion_sum_tangent(source, directions, weights, radius, offset, d_source
 def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotangent, *, pad,
                              shape, correction, samples, live):
     r"""The transpose of :func:`_occlusion_sum_tangent` (reverse mode), by recomputation:
-    memory about $2\sqrt{M} + 8$ volumes ($3\sqrt{M} + 8$ on a CPU, which keeps each
-    chunk's opacities), for any $L$. Returns the cotangents of
+    memory about $2\sqrt{M} + 8$ volumes, for any $L$ (on a CPU, which keeps each chunk's
+    opacities, $3\sqrt{M} + 8$, or $6\sqrt{M} + 8$ with the opacity correction). Returns
+    the cotangents of
     ``(source, weights, radius, offset)``; those that ``live`` marks as not wanted are
     scalar zeros, and the opacity's (the adjoint reads) is then not accumulated.
 
@@ -481,35 +486,41 @@ def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotang
         d_weight = jnp.sum(cotangent * occlusion)
         ct = weight * cotangent
 
+        def transmitted(transmittance, alpha, is_valid):
+            corrected = correct_opacity(alpha, step) if correction else alpha
+            return transmittance * (1 - is_valid * corrected)
+
+        def reverse(state, transmittance, alpha, slope, is_valid, distance, coef):
+            """One sample of the sweep back (:func:`_reverse_step`), its opacity's
+            cotangent added to ``d_source`` (the opposite shift). A sum that no wanted
+            cotangent reads stays the scalar it started as."""
+            suffix, d_source, acc_slope, acc_radius = state
+            g_alpha, suffix, slope_sum, radius_sum = _reverse_step(
+                ct, transmittance, suffix, alpha, slope, is_valid, step, coef, acc_slope,
+                acc_radius, samples=samples, correction=correction)
+            if live[0]:
+                d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad,
+                                                          distance * direction, direction)
+            return (suffix, d_source, slope_sum if live[3] else acc_slope,
+                    radius_sum if live[2] or live[3] else acc_radius)
+
+        def read(distance):
+            return _trilinear_shifted_with_slope(source, pad, shape, distance * direction,
+                                                 direction, exact=correction)
+
         def chunk_recomputed(state, chunk):
             start, dists, valids, coefs = chunk
 
             def t_step(transmittance, sample):
                 distance, is_valid = sample
-                alpha = _sample_opacity(source, pad, shape, distance, direction, step,
-                                        correction)
-                return transmittance * (1 - is_valid * alpha), transmittance
+                return transmitted(transmittance, read(distance)[0], is_valid), transmittance
 
             _, transmittances = lax.scan(t_step, start, (dists, valids))
 
             def sample_bwd(state, sample):
-                suffix_next, d_source, acc_slope, acc_radius = state
                 transmittance, distance, is_valid, coef = sample
-                offset_vec = distance * direction
-                alpha, slope = _trilinear_shifted_with_slope(source, pad, shape, offset_vec,
-                                                             direction, exact=correction)
-                g_alpha, suffix_next, slope_sum, radius_sum = _reverse_step(
-                    ct, transmittance, suffix_next, alpha, slope, is_valid, step, coef,
-                    acc_slope, acc_radius, samples=samples, correction=correction)
-                if live[0]:
-                    d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad,
-                                                              offset_vec, direction)
-                # (a sum that no wanted cotangent reads stays the scalar it started as)
-                if live[3]:
-                    acc_slope = slope_sum
-                if live[2] or live[3]:
-                    acc_radius = radius_sum
-                return (suffix_next, d_source, acc_slope, acc_radius), None
+                return reverse(state, transmittance, *read(distance), is_valid, distance,
+                               coef), None
 
             state, _ = lax.scan(sample_bwd, state, (transmittances, dists, valids, coefs),
                                 reverse=True)
@@ -517,30 +528,18 @@ def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotang
 
         def chunk_kept(state, chunk):
             start, dists, valids, coefs = chunk
-            suffix, d_source, acc_slope, acc_radius = state
             n = dists.shape[0]
-            reads = [_trilinear_shifted_with_slope(source, pad, shape, dists[k] * direction,
-                                                   direction, exact=correction)
-                     for k in range(n)]
+            reads = [read(dists[k]) for k in range(n)]
             # kept: the sums below run from sample to sample, and XLA would otherwise
             # fuse the eight windows' reads into each of their uses again
             alphas = lax.optimization_barrier(jnp.stack([value for value, _ in reads]))
             transmittances = [start]
             for k in range(n - 1):
-                corrected = correct_opacity(alphas[k], step) if correction else alphas[k]
-                transmittances.append(transmittances[-1] * (1 - valids[k] * corrected))
+                transmittances.append(transmitted(transmittances[-1], alphas[k], valids[k]))
             for k in reversed(range(n)):
-                g_alpha, suffix, slope_sum, radius_sum = _reverse_step(
-                    ct, transmittances[k], suffix, alphas[k], reads[k][1], valids[k], step,
-                    coefs[k], acc_slope, acc_radius, samples=samples, correction=correction)
-                if live[0]:
-                    d_source = _add_trilinear_shifted_adjoint(d_source, g_alpha, pad,
-                                                              dists[k] * direction, direction)
-                if live[3]:
-                    acc_slope = slope_sum
-                if live[2] or live[3]:
-                    acc_radius = radius_sum
-            return suffix, d_source, acc_slope, acc_radius
+                state = reverse(state, transmittances[k], alphas[k], reads[k][1], valids[k],
+                                dists[k], coefs[k])
+            return state
 
         def chunk_bwd(state, chunk):
             return lax.platform_dependent(
@@ -735,7 +734,8 @@ def _skipped_tangent(skipped, alpha, directions, weights, radius, offset, d_alph
     r"""The skipped voxels' AO tangent: $\sum_d K(d)\, \dot\alpha(x + d)$, a
     convolution with the kernel flipped (centred and of odd size, so mode "same" keeps it
     aligned)."""
-    del live  # (its one tangent is live: linear_primitive binds no map of zero tangents)
+    if not live[0]:  # (a zero tangent, passed as a scalar zero: the output's shape alone)
+        return (jnp.zeros_like(alpha),)
     kernel = _skipped_kernel(pad, samples, correction, directions, weights, radius, offset,
                              alpha.dtype)
     correlated = fftconvolve(d_alpha, kernel[::-1, ::-1, ::-1], mode="same")
