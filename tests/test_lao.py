@@ -360,10 +360,12 @@ def test_forward_mode_is_the_transpose_of_reverse_mode(always_bricked):
 
 @pytest.mark.parametrize("correction", [False, True])
 def test_kept_and_recomputed_reverse_sweeps_agree(monkeypatch, correction):
-    # a CPU keeps each chunk's opacities for the reverse sweep, other platforms recompute
-    # them: the suite runs on a CPU, so the other sweep is run here by declaring no
-    # platform keeps them; every cotangent (opacity, weights, radius, offset), float64
+    # a CPU keeps each chunk's opacities for the reverse sweep of a window of 32^3 voxels
+    # or more, other platforms and smaller windows recompute them: both run here, on a
+    # volume too small to keep them by default; every cotangent (opacity, weights,
+    # radius, offset), float64
     lao_module = sys.modules[lao.__module__]  # (volshade.lao is also the function's name)
+    monkeypatch.setattr(lao_module, "_KEEP_CHUNK_READS_FROM", 0)
     alpha = _random_alpha((11, 9, 7), 31, jnp.float64)
     c = jnp.asarray(np.random.default_rng(32).standard_normal(alpha.shape))
     dirs = vdirs.random_polar(5, key=jax.random.key(33))
@@ -382,6 +384,18 @@ def test_kept_and_recomputed_reverse_sweeps_agree(monkeypatch, correction):
     for kept, recomputed in zip(grads[("cpu",)], grads[()], strict=True):
         np.testing.assert_allclose(np.asarray(kept), np.asarray(recomputed), rtol=1e-12,
                                    atol=1e-14)
+
+
+def test_reverse_mode_keeps_the_chunks_reads_from_32_cubed_voxels_on_a_cpu():
+    # by default (lowered, not compiled): the kept sweep holds its opacities behind an
+    # optimization barrier, the recomputing one has none
+    def lowered(n):
+        spec = jax.ShapeDtypeStruct((n, n, n), jnp.float32)
+        grad = jax.grad(lambda a: jnp.sum(lao(a, directions=2, radius=2.0, samples=3)))
+        return jax.jit(grad).lower(spec).as_text()
+
+    assert "optimization_barrier" in lowered(32)
+    assert "optimization_barrier" not in lowered(31)
 
 
 @pytest.mark.slow

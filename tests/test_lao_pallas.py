@@ -452,29 +452,24 @@ def test_scene_renders_with_the_pallas_march():
 def test_a_fit_through_the_pallas_march_equals_the_xla_one():
     """The fit's solvers use forward mode (a least-squares Jacobian), which the Pallas
     march takes from the XLA march's tangent pass: the same steps and values as a fit
-    through the XLA march, for the scene's LAO and feature AO's. (Its custom VJP had no
-    forward mode, and the fit refused it by name.)"""
-    from volshade import Camera, FeatureAmbientOcclusion, IntervalFeature, Scene, fit, render
+    through the XLA march. (Its custom VJP had no forward mode, and the fit refused it
+    by name.)"""
+    from volshade import Camera, Scene, fit, render
     from volshade.transfer import preset
 
     vol = _alpha((8, 9, 10), 6)
     cam = Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(4, 4))
 
-    def scene(implementation, radius, where):
-        lao = LocalAmbientOcclusion(radius, directions=4, samples=4, max_radius=4.0,
-                                    implementation=implementation)
-        if where == "lao":
-            return Scene(volume=vol, transfer=preset("grey"), ambient="lao", lao=lao)
-        return Scene(volume=vol, transfer=preset("grey"), ambient="feature_ao",
-                     feature_ao=FeatureAmbientOcclusion([IntervalFeature(0.2, 0.9)], lao=lao))
+    def scene(implementation, radius):
+        return Scene(volume=vol, transfer=preset("grey"), ambient="lao",
+                     lao=LocalAmbientOcclusion(radius, directions=4, samples=4, max_radius=4.0,
+                                               implementation=implementation))
 
-    for path in ("lao", "feature_ao.lao"):
-        target = render(scene("xla", 3.0, path), cam)
-        results = [fit(scene(impl, 2.2, path), cam, target,
-                       params={f"{path}.radius": (1.0, 4.0)}) for impl in ("pallas", "xla")]
-        assert int(results[0].steps) == int(results[1].steps) > 0
-        np.testing.assert_allclose(results[0].values[f"{path}.radius"],
-                                   results[1].values[f"{path}.radius"], rtol=1e-10)
-        np.testing.assert_allclose(float(results[0].values[f"{path}.radius"]), 3.0,
-                                   atol=1e-6)
+    target = render(scene("xla", 3.0), cam)
+    results = [fit(scene(impl, 2.2), cam, target, params={"lao.radius": (1.0, 4.0)})
+               for impl in ("pallas", "xla")]
+    assert int(results[0].steps) == int(results[1].steps) > 0
+    np.testing.assert_allclose(results[0].values["lao.radius"],
+                               results[1].values["lao.radius"], rtol=1e-10)
+    np.testing.assert_allclose(float(results[0].values["lao.radius"]), 3.0, atol=1e-6)
 

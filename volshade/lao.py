@@ -70,7 +70,9 @@ That costs memory, about $3\sqrt{M} + 8$ volumes, and $6\sqrt{M} + 8$ with the
 opacity correction, whose derivative's terms are kept too (64^3, 16 rays: 20.6 and
 32.6 against 17.3 and 20.3 at $M = 16$; 29.9 and 50.9 against 23.3 and 26.3 at
 $M = 50$), and compilation time (both sweeps are traced, and the kept one is unrolled:
-a gradient at 32^3 traced and compiled in 2.0-3.0 s against 1.1-1.4 s). Each
+a gradient at 32^3 traced and compiled in 2.0-3.0 s against 1.1-1.4 s, and second
+derivatives twice as long). So windows of fewer than 32^3 voxels recompute (a gradient
+at 24^3 took as long either way, at 32^3 23 ms against 41 ms; radius 16). Each
 direction's and each chunk's recomputation is checkpointed (``jax.checkpoint``), so
 that JAX's own derivatives of the backward pass (second derivatives) recompute them
 too, instead of storing the recomputed opacities of every direction and sample (as the
@@ -125,8 +127,10 @@ from ._types import Array, ArrayLike, Float, Volume
 
 _WHERE = "volshade.lao"
 _CORNERS = tuple(np.ndindex(2, 2, 2))
-# the platforms on which reverse mode keeps each chunk's opacities (module docstring)
+# the platforms on which reverse mode keeps each chunk's opacities, and the fewest voxels
+# of a window it keeps them for (module docstring)
 _KEEP_CHUNK_READS_ON = ("cpu",)
+_KEEP_CHUNK_READS_FROM = 32**3
 
 
 # --------------------------------------------------------------------------- kernel
@@ -459,8 +463,8 @@ def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotang
                              shape, correction, samples, live):
     r"""The transpose of :func:`_occlusion_sum_tangent` (reverse mode), by recomputation:
     memory about $2\sqrt{M} + 8$ volumes, for any $L$ (on a CPU, which keeps each chunk's
-    opacities, $3\sqrt{M} + 8$, or $6\sqrt{M} + 8$ with the opacity correction). Returns
-    the cotangents of
+    opacities for windows of 32^3 voxels or more, $3\sqrt{M} + 8$, or $6\sqrt{M} + 8$
+    with the opacity correction). Returns the cotangents of
     ``(source, weights, radius, offset)``; those that ``live`` marks as not wanted are
     scalar zeros, and the opacity's (the adjoint reads) is then not accumulated.
 
@@ -542,6 +546,8 @@ def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotang
             return state
 
         def chunk_bwd(state, chunk):
+            if math.prod(shape) < _KEEP_CHUNK_READS_FROM:
+                return chunk_recomputed(state, chunk), None
             return lax.platform_dependent(
                 state, chunk, default=chunk_recomputed,
                 **dict.fromkeys(_KEEP_CHUNK_READS_ON, chunk_kept)), None
