@@ -72,7 +72,10 @@ opacity correction, whose derivative's terms are kept too (64^3, 16 rays: 20.6 a
 $M = 50$), and compilation time (both sweeps are traced, and the kept one is unrolled:
 a gradient at 32^3 traced and compiled in 2.0-3.0 s against 1.1-1.4 s, and second
 derivatives twice as long). So windows of fewer than 32^3 voxels recompute (a gradient
-at 24^3 took as long either way, at 32^3 23 ms against 41 ms; radius 16). Each
+at 24^3 took as long either way, at 32^3 22 ms against 28 ms; radius 16). The count is
+one march's: a brick's, or one element's of a ``vmap``, however many are marched at
+once, so bricked and batched gradients recompute below it (a review measured keeping
+14-22% faster there, 64^3 in bricks of 16, and 8 volumes of 24^3). Each
 direction's and each chunk's recomputation is checkpointed (``jax.checkpoint``), so
 that JAX's own derivatives of the backward pass (second derivatives) recompute them
 too, instead of storing the recomputed opacities of every direction and sample (as the
