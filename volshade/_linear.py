@@ -201,10 +201,12 @@ def linear_primitive(name: str, fn: Callable, transpose: Callable, n_residuals: 
         live = tuple(not isinstance(t, SymbolicZero) for t in tangents)
         linear = [t if on else jnp.zeros((), t.aval.dtype)
                   for t, on in zip(tangents, live, strict=True)]
-        static = dict(static, live=live)
         if not any(live):
-            return [jnp.zeros(o.shape, o.dtype) for o in jax.eval_shape(
-                functools.partial(fn, **static), *residuals, *linear)]
-        return forward.bind(*residuals, *linear, levels=(), **static)
+            # the shapes of a map of tangents taken as given (zeros), so that a map need
+            # not handle all its tangents being zero
+            shapes = jax.eval_shape(functools.partial(fn, **static, live=(True,) * len(live)),
+                                    *residuals, *(t.aval for t in tangents))
+            return [jnp.zeros(o.shape, o.dtype) for o in shapes]
+        return forward.bind(*residuals, *linear, levels=(), live=live, **static)
 
     return apply
