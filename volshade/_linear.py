@@ -123,8 +123,16 @@ def linear_primitive(name: str, fn: Callable, transpose: Callable, n_residuals: 
         other, body = partner[prim]
         prim.multiple_results = True
 
+        # the map at given levels and configuration as one jit, so that abstract
+        # evaluation, batching, lowering and JAX's forward mode reuse one trace per
+        # operand type instead of tracing the map again each (a bricked LAO Hessian
+        # traced in 2.0 s instead of 7.4 s)
+        @functools.lru_cache(maxsize=256)
+        def program(levels, static):
+            return jax.jit(_mapped(functools.partial(body, **dict(static)), levels))
+
         def impl(*operands, levels, **static):
-            return _mapped(functools.partial(body, **static), levels)(*operands)
+            return program(levels, tuple(sorted(static.items())))(*operands)
 
         def abstract_eval(*avals, levels, **static):
             # (weak types kept: a Python-number residual must not widen the outputs)

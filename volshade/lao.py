@@ -141,11 +141,14 @@ _KEEP_CHUNK_READS_FROM = 32**3
 
 def _corner_weights(frac: Array) -> list[tuple[tuple[int, int, int], Array]]:
     """The eight trilinear weights ``w_c(f) = prod_ax (f_ax if c_ax else 1 - f_ax)``."""
+    # (each axis read once: a read of a traced vector is an op to trace and compile)
+    above = [frac[ax] for ax in range(3)]
+    below = [1 - f for f in above]
     out = []
     for corner in _CORNERS:
         weight = None
         for ax in range(3):
-            factor = frac[ax] if corner[ax] else 1 - frac[ax]
+            factor = above[ax] if corner[ax] else below[ax]
             weight = factor if weight is None else weight * factor
         out.append((corner, weight))
     return out
@@ -181,11 +184,14 @@ def _corner_slices(source: Array, pad: tuple[int, int, int], shape: tuple[int, i
     the zero outside the volume.
     """
     frac, n = _cell(offset, direction)
-    # clamp here: lax.dynamic_slice would wrap a negative start around, like NumPy
-    limit = tuple(source.shape[ax] - shape[ax] for ax in range(3))
-    slices = {c: lax.dynamic_slice(
-        source, tuple(jnp.clip(pad[ax] + n[ax] + c[ax], 0, limit[ax]) for ax in range(3)),
-        shape) for c in _CORNERS}
+    # clamp here: lax.dynamic_slice would wrap a negative start around, like NumPy (and
+    # then it need not bind the wrapping)
+    starts = []
+    for ax in range(3):
+        cell, top = pad[ax] + n[ax], source.shape[ax] - shape[ax]
+        starts.append((jnp.clip(cell, 0, top), jnp.clip(cell + 1, 0, top)))
+    slices = {c: lax.dynamic_slice(source, [starts[ax][c[ax]] for ax in range(3)], shape,
+                                   allow_negative_indices=False) for c in _CORNERS}
     return frac, n, slices
 
 
@@ -229,14 +235,18 @@ def _trilinear_shifted(source, pad, shape, offset, direction, *, exact: bool) ->
 def _corner_slopes(frac, direction) -> list:
     """``d w_c(f + s l) / ds`` at ``s = 0`` for the eight corners (in ``_CORNERS``
     order): the derivative of each trilinear weight along the ray ``direction``."""
+    above = [frac[ax] for ax in range(3)]
+    below = [1 - f for f in above]
+    up = [direction[ax] for ax in range(3)]
+    down = [-d for d in up]
     out = []
     for corner in _CORNERS:
         slope = None
         for ax in range(3):
-            term = direction[ax] if corner[ax] else -direction[ax]
+            term = up[ax] if corner[ax] else down[ax]
             for bx in range(3):
                 if bx != ax:
-                    term = term * (frac[bx] if corner[bx] else 1 - frac[bx])
+                    term = term * (above[bx] if corner[bx] else below[bx])
             slope = term if slope is None else slope + term
         out.append(slope)
     return out
@@ -275,8 +285,10 @@ def _add_trilinear_shifted_adjoint(accumulator, cotangent, pad, offset, directio
                                lo[2]:lo[2] + shape[2] + 1]
         blended = term if blended is None else blended + term
     start = tuple(jnp.clip(pad[ax] + n[ax], 0, 2 * pad[ax] - 1) for ax in range(3))
-    current = lax.dynamic_slice(accumulator, start, blended.shape)
-    return lax.dynamic_update_slice(accumulator, current + blended, start)
+    current = lax.dynamic_slice(accumulator, start, blended.shape,
+                                allow_negative_indices=False)
+    return lax.dynamic_update_slice(accumulator, current + blended, start,
+                                    allow_negative_indices=False)
 
 
 def _chunking(n_samples: int, longest: int | None = None) -> tuple[int, int]:
