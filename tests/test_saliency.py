@@ -259,20 +259,19 @@ def test_viewpoint_saliency_grad_vmap_dtype():
 
 
 @pytest.mark.parametrize("visibility", ["transmittance", "contribution"])
-def test_viewpoint_saliency_memory_holds_one_view_at_a_time(visibility):
-    # a compiled program's buffer plan (not a timing), in volumes of the input, 42 views
-    # in six groups: found by a reverse-mode memory audit, every view's sheared columns
-    # were kept for the reverse pass (32^3: 650 volumes); and with a loop per group the
-    # forward pass built every group's columns at once (60 volumes; now 7.4)
+def test_viewpoint_saliency_reverse_mode_does_not_keep_every_view(visibility):
+    # found by a reverse-mode memory audit: every view's sheared columns were kept for
+    # the reverse pass (32^3, 42 views: 650 volumes of temporaries, 10x the forward's).
+    # A compiled
+    # program's buffer plan, not a timing: its gradient against its forward, 42 views
     spec = jax.ShapeDtypeStruct((16, 16, 16), jnp.float32)
     views = icosphere(1)
 
     def f(s, a):
         return jnp.sum(viewpoint_saliency(s, a, views, visibility=visibility))
 
-    forward, grad = (temp_bytes(fn, spec, spec) / (4 * 16**3) for fn in (f, jax.grad(f, (0, 1))))
-    assert forward <= 10, forward
-    assert grad <= 45, grad
+    forward, grad = (temp_bytes(fn, spec, spec) for fn in (f, jax.grad(f, (0, 1))))
+    assert grad <= 2 * forward, grad / forward
 
 
 def test_salient_views_float32_agree_with_float64():
