@@ -140,6 +140,23 @@ def test_vmap_maps_each_operand_over_the_levels_it_carries(axes):
     _close(mapped_grad(_f)(*args), mapped_grad(_plain)(*args))
 
 
+@pytest.mark.parametrize("size", [2, 0])
+def test_an_output_no_mapped_operand_reaches_keeps_its_cotangent(size):
+    # the map's second output r x does not depend on y: under a vmap over y alone it stays
+    # unmapped, and its cotangent reaches x also when the vmap is empty (it came out 0)
+    r, x, ys = _args(10)[0], _args(11)[1], _args(12, (size,))[2]
+
+    def second(x, scale):
+        return jax.vmap(lambda y: tuple(scale((r,), (x, y), k=2.0)), out_axes=(0, None))(ys)[1]
+
+    out, vjp = jax.vjp(lambda x: second(x, _apply), x)
+    want_out, want_vjp = jax.vjp(lambda x: second(x, lambda res, lin, k: _scale(*res, *lin, k=k)),
+                                 x)
+    c = _args(13)[0]
+    _close((out, vjp(c)), (want_out, want_vjp(c)))
+    assert float(jnp.max(jnp.abs(vjp(c)[0]))) > 0.1
+
+
 def test_nested_vmap_with_operands_on_different_levels():
     # the residual on the outer level, x on the inner one, y on both
     r = _args(4, (2,))[0]

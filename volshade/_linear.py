@@ -28,7 +28,8 @@ level below, each operand mapped if it carries the level, and each output mapped
 depends on an operand that does (found on the map's jaxpr), else left unmapped. The
 transpose of a mapped level maps the transpose back: the cotangent of a tangent the
 level did not map is summed over the level, and the cotangent of an output it did not
-map (which depends on no mapped operand) is shared out, ``1/size`` to each element.
+map (which depends on no mapped operand) is shared out, ``1/size`` to each element (an
+empty level gives it whole to one element, at mapped operands of zero).
 """
 
 import functools
@@ -96,12 +97,19 @@ def _mapped(fn: Callable, levels: tuple[_Level, ...]) -> Callable:
                                 out_axes=_axes(_level.outputs), axis_size=_level.size)(
                     *operands)
             # the transpose of a mapped level: an unmapped cotangent belongs to an output
-            # that no mapped operand reaches, and is shared out over the level
-            linear = [x if m else x / _level.size
+            # that no mapped operand reaches, and is shared out over the level; an empty
+            # level has no element to share it out to, so one element takes it whole, at
+            # mapped operands of zero (which that output does not depend on)
+            mapped = _level.residuals + _level.linear
+            size = max(_level.size, 1)
+            if _level.size == 0:
+                operands = [jnp.zeros((1, *x.shape[1:]), x.dtype) if m else x
+                            for x, m in zip(operands, mapped, strict=True)]
+            linear = [x if m else x / size
                       for x, m in zip(operands[n:], _level.linear, strict=True)]
-            outs = jax.vmap(_inner, in_axes=_axes(_level.residuals + _level.linear),
-                            axis_size=_level.size)(*operands[:n], *linear)
-            return tuple(o if m else jnp.sum(o, axis=0)
+            outs = jax.vmap(_inner, in_axes=_axes(mapped), axis_size=size)(
+                *operands[:n], *linear)
+            return tuple((o if _level.size else o[:0]) if m else jnp.sum(o, axis=0)
                          for o, m in zip(outs, _level.outputs, strict=True))
 
         fn = at_level
