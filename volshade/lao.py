@@ -532,7 +532,10 @@ def _occlusion_sum_transpose(source, directions, weights, radius, offset, cotang
 
             def t_step(transmittance, sample):
                 distance, is_valid = sample
-                return transmitted(transmittance, read(distance)[0], is_valid), transmittance
+                # (the value alone: its slope is read on the way back)
+                alpha = _trilinear_shifted(source, pad, shape, distance * direction,
+                                           direction, exact=correction)
+                return transmitted(transmittance, alpha, is_valid), transmittance
 
             _, transmittances = lax.scan(t_step, start, (dists, valids))
 
