@@ -170,6 +170,9 @@ def test_bad_clips_raise_clear_errors():
     for shape in ((4, 4), (True, True, True)):
         with pytest.raises(ValueError, match=r"`shape` must be 3 positive ints"):
             vs.clip_mask(shape, SHAPES["sphere"])
+    # found by a review: JAX scalars holding positive ints were refused as if they did not
+    with pytest.raises(TypeError, match=r"`shape` must be Python ints .* got JAX arrays"):
+        vs.affected_mask(tuple(jnp.array((4, 4, 4))), SHAPES["sphere"], radius=2.0)
     with pytest.raises(TypeError, match="`clip` must be a volshade clip shape"):
         vs.clip_opacity(jnp.ones((4, 4, 4)), "sphere")
     holed = jnp.ones((4, 4, 4)).at[0, 0, 0].set(jnp.nan)

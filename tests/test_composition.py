@@ -155,6 +155,10 @@ def test_zero_opacity_sample_changes_nothing(sample_importance):
     out = jcomposite(c3, a2, importance=i2, background=np.array([0.5, 0.5, 0.5]),
                      background_importance=0.5)
     np.testing.assert_allclose(out, base, atol=1e-14)
+    # where standard compositing adds it, as light emitted (composite's docstring)
+    emitted = np.prod(1 - a[:, :3], axis=1)[:, None] * np.array([0.1, 0.8, 0.3])
+    np.testing.assert_allclose(jcomposite(c3, a2)[:, :3], jcomposite(c2, a2)[:, :3] + emitted,
+                               atol=1e-14)
     # also as the very first sample of a ray
     out = jcomposite(np.insert(c, 0, 0.0, axis=1), np.insert(a, 0, 0.0, axis=1),
                     importance=np.insert(imp, 0, sample_importance, axis=1),

@@ -14,6 +14,7 @@ from jax.flatten_util import ravel_pytree
 from volshade.composition import composite
 from volshade.gradient import regression_gradient
 from volshade.importance import (
+    Focus,
     Importance,
     focus_weights,
     lighting_importance,
@@ -504,6 +505,10 @@ def test_focus_errors_and_dtype():
         focus_weights((4, 4), center=(1.0, 1.0, 1.0), radius=1.0)
     with pytest.raises(ValueError, match="image_shape"):
         focus_weights((4,), center=(1.0, 1.0), radius=1.0)
+    # found by a review: the Focus method unpacked its argument first ('cannot unpack')
+    for shape in (16, (16, 16, 3)):
+        with pytest.raises(ValueError, match=r"Focus.weights: `image_shape` must be \(H, W\)"):
+            Focus(center=(0.5, 0.5), radius=0.2).weights(shape)
     with pytest.raises(Exception, match="radius"):
         focus_weights((4, 4), center=(1.0, 1.0), radius=0.0)
     for name in ("inside", "outside"):     # a per-column weight is not what either means

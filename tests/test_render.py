@@ -381,6 +381,10 @@ def test_bad_input_errors(tmp_path):
 
 def test_cameras_with_no_image_are_refused():
     eye, up, zero = jnp.asarray([2.0, 0.0, 0.0]), jnp.asarray([1.0, 0.0, 0.0]), jnp.zeros(3)
+
+    def f32(*values):
+        return jnp.asarray(values if len(values) > 1 else values[0], jnp.float32)
+
     bad = [
         (lambda: Camera(zero, zero, up, jnp.asarray(30.0), jnp.asarray(1.0)), "must differ"),
         (lambda: Camera(eye, zero, up, jnp.asarray(30.0), jnp.asarray(1.0)), "parallel"),
@@ -395,6 +399,12 @@ def test_cameras_with_no_image_are_refused():
          "Camera.orbit: `fov` does not apply to orthographic views .* set "
          "projection='perspective'"),
         (lambda: Camera.orbit(width=1.0), "`width` does not apply to perspective views"),
+        # found by a review: lengths whose square is subnormal in float32, which the rays'
+        # normalisation flushes to zero (every pixel got the same ray, or a zero one)
+        (lambda: Camera(f32(1e-20, 0, 0), f32(0, 0, 0), f32(0, 1, 0), f32(30), f32(1)),
+         "must differ"),
+        (lambda: Camera(f32(2, 0, 0), f32(0, 0, 0), f32(1, 1e-20, 0), f32(30), f32(1)),
+         "parallel"),
     ]
     for make, match in bad:
         with pytest.raises(ValueError, match=match):
@@ -414,6 +424,10 @@ def test_cameras_with_no_image_are_refused():
         looking_up(up)
     for elevation in (90.0, -90.0, 89.95):  # looking along d is not degenerate
         assert np.all(np.isfinite(Camera.orbit(elevation=elevation, image_shape=(2, 2)).rays()[1]))
+    # nor is a short view whose square is still a normal float32
+    near = Camera(f32(1e-18, 0, 0), f32(0, 0, 0), f32(0, 1, 0), f32(30), f32(1),
+                  image_shape=(2, 2)).rays()[1]
+    assert len(np.unique(np.asarray(near).reshape(-1, 3), axis=0)) == 4
 
 
 def test_camera_from_a_view_direction():

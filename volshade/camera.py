@@ -36,6 +36,20 @@ def _image_shape(shape) -> tuple:
                     f"two ints, or one int, got {shape!r:.80}.")
 
 
+def _vanishing(v: Array, xp) -> tuple[Array, Array]:
+    """``(vanishes, direction)``: whether :func:`safe_normalize` makes ``v`` the zero
+    vector, and ``v`` normalised (computed with ``xp``, NumPy for concrete values). It
+    does where ``|v|^2`` (of ``v`` divided by its largest component above 1) is below
+    the smallest normal number of the dtype, which XLA flushes to 0: a view ``1e-20``
+    long, or an ``up`` ``1e-20`` off the view direction, in float32. NaN does not
+    vanish (the finiteness checks name it)."""
+    peak = xp.max(xp.abs(v))
+    v = v / xp.where(peak > 1, peak, xp.ones_like(peak))
+    square = xp.sum(v * v)
+    vanishes = square < xp.finfo(v.dtype).tiny
+    return vanishes, v / xp.sqrt(xp.where(vanishes, xp.ones_like(square), square))
+
+
 @jax.jit
 def _orbit_pose(azimuth: Array, elevation: Array, target: Array, distance: Array
                 ) -> tuple[Array, Array]:
@@ -133,12 +147,15 @@ class Camera(eqx.Module):
         # NaN compares false here: non-finite values are the finiteness checks' to name
         xp, eye, target, up, fov, width = _checks.for_check(self.eye, self.target, self.up,
                                                             self.fov, self.width)
-        view = target - eye
+        # as :meth:`basis` normalises them, in the rays' dtype
+        dtype = np.result_type(eye.dtype, target.dtype, up.dtype, np.float32)
+        no_view, forward = _vanishing(xp.asarray(target - eye, dtype), xp)
+        no_right, _ = _vanishing(xp.cross(xp.asarray(up, dtype), forward), xp)
         checks = [
-            (xp.sum(view * view) == 0, "`eye` and `target` must differ (for "
-             "Camera.orbit: `distance` must be > 0)."),
-            (xp.sum(xp.cross(up, view) ** 2) == 0, "`up` must be non-zero and "
-             "not parallel to the view direction `target - eye`."),
+            (no_view, "`eye` and `target` must differ (for Camera.orbit: `distance` must "
+             "be > 0)."),
+            (no_right, "`up` must be non-zero and not parallel to the view direction "
+             "`target - eye`."),
         ]
         if self.projection == "perspective":
             checks.append(((fov <= 0) | (fov >= 180), "`fov` must lie in (0, 180) degrees."))

@@ -335,6 +335,9 @@ def _shape_of(shape, where: str) -> tuple[int, int, int]:
     except TypeError as err:
         raise TypeError(f"{where}: `shape` must be 3 positive ints (D, H, W), e.g. "
                         f"`volume.shape`, got {shape!r:.80}.") from err
+    if any(isinstance(n, jax.Array) for n in shape):
+        raise TypeError(f"{where}: `shape` must be Python ints (it sets array shapes), e.g. "
+                        f"`volume.shape`, got JAX arrays.")
     if len(shape) != 3 or not all(isinstance(n, int | np.integer) and not isinstance(n, bool)
                                   and n >= 1 for n in shape):
         shown = repr(shape) if len(shape) <= 3 else f"{len(shape)} values"
@@ -375,8 +378,8 @@ def clip_mask(shape: tuple[int, int, int], clip: Clip) -> Bool[Array, "D H W"]:
 
     Raises:
         ValueError: ``shape`` not 3 positive ints.
-        TypeError: ``shape`` not a sequence, or the volume itself (pass
-            ``volume.shape``); ``clip`` not a clip shape.
+        TypeError: ``shape`` not a sequence, of JAX arrays, or the volume itself
+            (pass ``volume.shape``); ``clip`` not a clip shape.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): a ``clip`` leaf
             that is not finite, a size that is not > 0 or a ``rotation`` that is not
             orthonormal (values set after it was built, e.g. with ``eqx.tree_at``, or
@@ -406,8 +409,8 @@ def affected_mask(shape: tuple[int, int, int], clip: Clip, *,
 
     Raises:
         ValueError: ``shape`` not 3 positive ints, a non-scalar ``radius``.
-        TypeError: ``shape`` not a sequence, or the volume itself (pass
-            ``volume.shape``); ``clip`` not a clip shape, a non-numeric
+        TypeError: ``shape`` not a sequence, of JAX arrays, or the volume itself
+            (pass ``volume.shape``); ``clip`` not a clip shape, a non-numeric
             (or bool) ``radius``.
         ValueError / equinox.EquinoxRuntimeError (traced: at run time): ``radius`` not
             a finite number > 0; a bad ``clip`` leaf (as for :func:`clip_mask`).

@@ -781,7 +781,11 @@ def composite(
 
     Args:
         colors: ``(..., S, 3)`` opacity-weighted colours $C_s = \alpha_s c_s$ of
-            S samples per ray, front first.
+            S samples per ray, front first. A colour given where $\alpha_s = 0$ (light
+            emitted, not opacity-weighted) is added by standard compositing and
+            dropped by importance-aware compositing, whose eq. 8 would weight it by
+            $(1 - a)/m$, without bound as the importance gap grows: give 0 there for
+            the two to agree.
         alphas: ``(..., S)`` opacities in [0, 1].
         importance: optional ``(..., S)`` sample importances $I_s$ (any real;
             only differences matter).

@@ -28,7 +28,7 @@ References:
 import dataclasses
 import functools
 from collections.abc import Callable
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -51,7 +51,8 @@ class Importance(eqx.Module):
     The defaults (all measure weights 0) give $I_s = 0$ everywhere, for which
     importance-aware compositing equals standard compositing up to rounding (about
     1e-15 in float64, 1e-6 in float32: eq. 8's terms are not formed as standard
-    compositing forms them, so the rounding differs). Compositing depends
+    compositing forms them, so the rounding differs), for opacity-weighted colours
+    (the renderer's; see :func:`volshade.composite` for a colour given at opacity 0). Compositing depends
     on importance differences only, and gaps of any size are handled stably; but the
     products $W_{global} W_{measure} \cdot measure$ are formed in the render's dtype,
     so in float32 weights whose product passes about $10^{38}$ (e.g. both $10^{30}$)
@@ -568,6 +569,14 @@ FOCUS_KINDS: dict[str, Callable[..., Array]] = {
 }
 
 
+def _image_size(image_shape: Any, where: str) -> tuple[int, int]:
+    """``(H, W)`` of ``image_shape``, a tuple or list of two positive ints."""
+    if not isinstance(image_shape, tuple | list) or len(image_shape) != 2:
+        raise ValueError(f"{where}: `image_shape` must be (H, W), a tuple of two ints, got "
+                         f"{image_shape!r:.80}.")
+    return tuple(_checks.positive_int(s, "image_shape", where) for s in image_shape)
+
+
 def focus_weights(
     image_shape: tuple[int, int],
     *,
@@ -617,9 +626,7 @@ def focus_weights(
     """
     where = "volshade.focus_weights"
     fn = _checks.option(kind, FOCUS_KINDS, "kind", where)
-    if not isinstance(image_shape, tuple | list) or len(image_shape) != 2:
-        raise ValueError(f"{where}: `image_shape` must be (H, W), got {image_shape!r}.")
-    h, w = (_checks.positive_int(s, "image_shape", where) for s in image_shape)
+    h, w = _image_size(image_shape, where)
     center = _checks.numbers(center, "center", where)
     if center.shape != (2,):
         raise ValueError(f"{where}: `center` must be (row, column), got shape {center.shape}.")
@@ -737,7 +744,7 @@ class Focus(eqx.Module):
                                  f"{jnp.shape(getattr(focus, name))}; for several foci, build "
                                  f"each Focus inside jax.vmap, e.g. jax.vmap(lambda r: "
                                  f"Focus(radius=r).weights(shape))(radii).")
-        h, w = image_shape
+        h, w = _image_size(image_shape, "volshade.Focus.weights")
         dtype = jnp.result_type(focus.center, focus.radius, focus.inside, focus.outside)
         center = _checks.refuse(focus.center, [focus._center_problem()], "volshade.Focus")
         # in pixels in float32 at least: bfloat16 keeps 8 significant bits, so a
