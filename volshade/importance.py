@@ -52,11 +52,12 @@ class Importance(eqx.Module):
     importance-aware compositing equals standard compositing up to rounding (about
     1e-15 in float64, 1e-6 in float32: eq. 8's terms are not formed as standard
     compositing forms them, so the rounding differs), for opacity-weighted colours
-    (the renderer's; see :func:`volshade.composite` for a colour given at opacity 0). Compositing depends
-    on importance differences only, and gaps of any size are handled stably; but the
-    products $W_{global} W_{measure} \cdot measure$ are formed in the render's dtype,
-    so in float32 weights whose product passes about $10^{38}$ (e.g. both $10^{30}$)
-    overflow to infinity and the image degrades without an error: use float64 there.
+    (the renderer's; see :func:`volshade.composite` for a colour given at opacity 0).
+    Compositing depends on importance differences only, and gaps of any size are
+    handled stably; but the products $W_{global} W_{measure} \cdot measure$ are formed
+    in the render's dtype, so in float32 weights whose product passes about $10^{38}$
+    (e.g. both $10^{30}$) overflow to infinity and the image degrades without an
+    error: use float64 there.
 
     Where every sample of a ray has the same importance (all measure weights exactly 0,
     the defaults, or a focus weight of 0), every step is a tie $K_i = I_s$, which has
