@@ -151,11 +151,13 @@ class Camera(eqx.Module):
         dtype = np.result_type(eye.dtype, target.dtype, up.dtype, np.float32)
         no_view, forward = _vanishing(xp.asarray(target - eye, dtype), xp)
         no_right, _ = _vanishing(xp.cross(xp.asarray(up, dtype), forward), xp)
+        tiny = f"{np.sqrt(np.finfo(dtype).tiny):.0e}"
         checks = [
-            (no_view, "`eye` and `target` must differ (for Camera.orbit: `distance` must "
-             "be > 0)."),
-            (no_right, "`up` must be non-zero and not parallel to the view direction "
-             "`target - eye`."),
+            (no_view, f"`eye` and `target` must differ, by more than about {tiny} in "
+             f"{np.dtype(dtype).name} (for Camera.orbit: `distance` must be > 0)."),
+            (no_right, f"`up` must be non-zero and not parallel to the view direction "
+             f"`target - eye` (its part across the view longer than about {tiny} in "
+             f"{np.dtype(dtype).name})."),
         ]
         if self.projection == "perspective":
             checks.append(((fov <= 0) | (fov >= 180), "`fov` must lie in (0, 180) degrees."))
