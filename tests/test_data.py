@@ -298,6 +298,8 @@ def test_load_nifti_missing_file(tmp_path):
     missing = tmp_path / "nope.nii.gz"
     with pytest.raises(FileNotFoundError, match="nope.nii.gz"):
         data.load_nifti(missing)
+    with pytest.raises(IsADirectoryError, match="`path` is a folder, not a NIfTI file"):
+        data.load_nifti(tmp_path)  # (a review: it said "no such file")
     bogus = tmp_path / "bogus.nii.gz"
     bogus.write_text("not an image")
     with pytest.raises(ValueError, match="bogus.nii.gz' is not an image nibabel can read"):

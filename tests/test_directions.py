@@ -107,8 +107,8 @@ def test_random_polar_depends_on_the_key_only():
     (lambda: vdirs.random_polar(0, key=jax.random.key(0)), ValueError, "`n` must be >= 1"),
     (lambda: vdirs.random_polar("3", key=jax.random.key(0)), TypeError,
      "`n` must be a Python int"),
-    (lambda: vdirs.random_polar(3, key=0), TypeError, "`key` must be a jax.random key"),
-    (lambda: vdirs.random_polar(3, key=None), TypeError, "`key` must be a jax.random key"),
+    (lambda: vdirs.random_polar(3, key=0), TypeError, "`key` must be one jax.random key"),
+    (lambda: vdirs.random_polar(3, key=None), TypeError, "`key` must be one jax.random key"),
 ])
 def test_bad_arguments_name_the_argument(call, error, match):
     with pytest.raises(error, match=match):

@@ -109,7 +109,7 @@ def test_nested_lists_become_arrays():
                                    shininess=jnp.array(True)), TypeError,
      "obscurance_shading: `shininess` must be a number, got the bool"),
     (lambda: vs.directions.random_polar(3, key=0), TypeError,
-     "random_polar: `key` must be a jax.random key"),
+     "random_polar: `key` must be one jax.random key"),
     # a truthy string would silently switch these on
     (lambda: vs.viewpoint_saliency(DENSITY, DENSITY, icosphere_points(0), per_area="no"),
      TypeError, "viewpoint_saliency: `per_area` must be True or False"),

@@ -369,6 +369,7 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
+        IsADirectoryError: ``path`` is a folder.
         ImportError: nibabel is not installed (``pip install "volshade[data]"``).
         ValueError: the file is not an image nibabel can read (or is cut short), its
             voxels are not real numbers, the image is not 3-D
@@ -390,6 +391,9 @@ def load_nifti(path: str | os.PathLike, *, normalize: bool = True,
     except TypeError as err:
         raise TypeError(f"{where}: `path` must be a file path (str or os.PathLike), got "
                         f"{path!r:.80}.") from err
+    if path.is_dir():
+        raise IsADirectoryError(f"{where}: `path` is a folder, not a NIfTI file: "
+                                f"{str(path)!r}.")
     if not path.is_file():
         raise FileNotFoundError(f"{where}: no such file: {str(path)!r}.")
     try:

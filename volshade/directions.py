@@ -67,8 +67,9 @@ def random_polar(n: int, *, key: jax.Array) -> Float[Array, "n 3"]:
     try:
         k1, k2 = jax.random.split(key)
     except (TypeError, ValueError) as err:
-        raise TypeError(f"{where}: `key` must be a jax.random key, e.g. jax.random.key(0), "
-                        f"got {key!r}.") from err
+        raise TypeError(f"{where}: `key` must be one jax.random key, e.g. "
+                        f"jax.random.key(0) (for several sets, jax.vmap over a batch of "
+                        f"keys), got {key!r:.200}.") from err
     dtype = jnp.result_type(float)
     cos_t = jax.random.uniform(k1, (n,), dtype, -1.0, 1.0)
     phi = jax.random.uniform(k2, (n,), dtype, 0.0, 2 * jnp.pi)

@@ -42,7 +42,7 @@ def trilinear(
 
     Returns:
         ``(...)`` values, or ``(..., C)`` for a multi-channel volume, in the dtype
-        of ``volume``.
+        of ``volume`` (integer and bool volumes: JAX's default float).
 
     Raises:
         ValueError: ``volume`` is not 3-D or 4-D or is empty, ``points`` does not end in 3,
