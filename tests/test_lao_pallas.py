@@ -451,9 +451,12 @@ def test_scene_renders_with_the_pallas_march():
 @pytest.mark.slow
 def test_a_fit_through_the_pallas_march_equals_the_xla_one():
     """The fit's solvers use forward mode (a least-squares Jacobian), which the Pallas
-    march takes from the XLA march's tangent pass: the same steps and values as a fit
-    through the XLA march. (Its custom VJP had no forward mode, and the fit refused it
-    by name.)"""
+    march takes from the XLA march's tangent pass: the same value as a fit through the
+    XLA march. (Its custom VJP had no forward mode, and the fit refused it by name.)
+    Not the same number of steps: once the loss is down to rounding (1e-32), when the
+    solver stops depends on the rounding, which differs between the two marches (12
+    and 7 steps with the default XLA flags; equal at the suite's optimisation level
+    until a change to the camera's checks moved XLA's fusion)."""
     from volshade import Camera, Scene, fit, render
     from volshade.transfer import preset
 
@@ -468,8 +471,9 @@ def test_a_fit_through_the_pallas_march_equals_the_xla_one():
     target = render(scene("xla", 3.0), cam)
     results = [fit(scene(impl, 2.2), cam, target, params={"lao.radius": (1.0, 4.0)})
                for impl in ("pallas", "xla")]
-    assert int(results[0].steps) == int(results[1].steps) > 0
+    for result in results:
+        assert int(result.steps) > 0 and float(result.loss) < 1e-20
+        np.testing.assert_allclose(float(result.values["lao.radius"]), 3.0, atol=1e-6)
     np.testing.assert_allclose(results[0].values["lao.radius"],
                                results[1].values["lao.radius"], rtol=1e-10)
-    np.testing.assert_allclose(float(results[0].values["lao.radius"]), 3.0, atol=1e-6)
 
