@@ -555,7 +555,7 @@ def render(scene: Scene, camera: Camera | list[Camera] | tuple[Camera, ...]
             their values) are marched by one compiled loop (``jax.lax.map``), so a
             turntable of many views compiles like one. The images equal those of
             one render per camera up to rounding (XLA may order the arithmetic of
-            the two programs differently: about 1e-6 in float32).
+            the two programs differently: a few 1e-6 in float32).
 
     Returns:
         ``(H, W, 4)`` RGB (background blended in) and accumulated opacity; for a
