@@ -32,6 +32,7 @@ import subprocess
 import sys
 
 import jax
+import numpy as np
 
 BENCHMARKS = ("render", "views", "lao", "feature_ao", "cao", "fit", "obscurance", "composition",
               "gpu", "gpu_recheck", "lao_pallas", "pallas_sass")
@@ -54,12 +55,14 @@ def _format_table(rows: list[dict]) -> str:
 
 
 def _strict(value):
-    """``value`` with every non-finite float made ``None`` (JSON has no NaN or inf)."""
+    """``value`` with every non-finite number made ``None`` (JSON has no NaN or inf), a
+    NumPy float too (it is no Python float: written through ``default=float``, it
+    stopped the record at the end of the run)."""
     if isinstance(value, dict):
         return {k: _strict(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [_strict(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
+    if isinstance(value, float | np.floating) and not math.isfinite(value):
         return None
     return value
 

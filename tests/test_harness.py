@@ -5,6 +5,8 @@ import pathlib
 import shutil
 import types
 
+import numpy as np
+
 from benchmarks import run
 from benchmarks._timing import time_fns
 
@@ -47,7 +49,8 @@ def test_the_record_is_strict_json(monkeypatch, tmp_path):
     # found by a review: a NaN (a row with nothing to time) was written as a bare NaN
     # token, which is not JSON (a browser's JSON.parse refuses the file)
     result = {"title": "fake", "rows": [{"case": "agree", "median_s": float("nan"),
-                                         "max": float("inf")}], "ratios": {"r": 2.0}}
+                                         "max": float("inf"), "mean": np.float32("nan")}],
+              "ratios": {"r": 2.0}}
     module = types.SimpleNamespace(run=lambda quick: result)
     monkeypatch.setattr(run.importlib, "import_module", lambda name: module)
     out = tmp_path / "r.json"
@@ -57,7 +60,7 @@ def test_the_record_is_strict_json(monkeypatch, tmp_path):
         raise ValueError(token)
 
     record = json.loads(out.read_text(), parse_constant=refuse)
-    assert record["rows"] == [{"case": "agree", "median_s": None, "max": None}]
+    assert record["rows"] == [{"case": "agree", "median_s": None, "max": None, "mean": None}]
     assert record["ratios"] == {"r": 2.0}
 
 

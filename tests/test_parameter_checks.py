@@ -55,6 +55,23 @@ def test_int_parameters_become_float_leaves_that_get_gradients():
     assert float(g_int.obscurance.d_max) == float(g_float.obscurance.d_max) != 0.0
 
 
+def test_integers_past_jaxs_integer_dtype_are_numbers():
+    # a review: 2**31 (past int32 without x64) failed in jnp.asarray with a bare
+    # OverflowError naming nothing; a float holds it. Past a float's range: refused by name
+    big = 2**63 if jax.config.jax_enable_x64 else 2**31
+    camera = vs.Camera(eye=[0, big, 0], target=[0, 0, 0], up=[1, 0, 0], fov=30, width=1)
+    assert float(camera.eye[1]) == float(big)
+    assert float(vs.LocalAmbientOcclusion(2.0, offset=1, max_radius=big).max_radius) \
+        == float(big)
+    with pytest.raises(ValueError, match="`radius` holds an integer beyond the range of a "
+                                         "float"):
+        vs.LocalAmbientOcclusion(10**400)
+    with pytest.raises(ValueError, match=r"`step` must be a finite number > 0"):
+        vs.Scene(volume=VOL, transfer=TF, step=10**400)
+    with pytest.raises(TypeError, match=r"`spacing` must be a number or 3 numbers"):
+        vs.Scene(volume=VOL, transfer=TF, spacing=[1, [2, 3]])
+
+
 def test_lao_module_with_a_batch_axis_vmaps():
     # a batch of radii and of weights (the constructor checks one member's shapes)
     dirs = icosphere(0)

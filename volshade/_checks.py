@@ -19,10 +19,25 @@ import numpy as np
 from ._types import Array
 
 
+def _big_ints(x: Any, name: str, where: str) -> Array:
+    """``x``, holding Python ints past JAX's integer dtype (``jnp.asarray`` overflows:
+    ``2**31`` without x64), as the default float, which holds them (a scalar weakly
+    typed, as a Python float); ints past a float's range (``10**400``) refused by name
+    (both were a bare ``OverflowError``)."""
+    try:
+        values = np.asarray(x, dtype=float)
+    except OverflowError as err:
+        raise ValueError(f"{where}: `{name}` holds an integer beyond the range of a float, "
+                         f"got {x!r:.80}.") from err
+    return jnp.asarray(values.tolist())
+
+
 def as_float_array(x: Any, name: str, where: str) -> Array:
     """``x`` as a JAX array of a floating dtype (integers are promoted, other dtypes refused)."""
     try:
         arr = jnp.asarray(x)
+    except OverflowError:
+        arr = _big_ints(x, name, where)
     except (TypeError, ValueError) as err:  # ValueError: None, a ragged nested list
         # a transfer function or its method where its values belong (DESIGN.md's
         # `colors=tf.color`): say what to call
@@ -81,6 +96,8 @@ def float_leaf(x: Any, name: str = "value", where: str = "volshade") -> Array:
     part (also beside numbers, ``(True, 4.0, 4.0)``, which NumPy would promote)."""
     try:
         arr = jnp.asarray(x)
+    except OverflowError:
+        arr = _big_ints(x, name, where)
     except (TypeError, ValueError) as err:
         raise TypeError(f"{where}: `{name}` must be a real number or an array of them, "
                         f"got {x!r}.") from err
@@ -420,6 +437,9 @@ def positive_float(value: Any, name: str, where: str) -> float:
         raise TypeError(f"{where}: `{name}` must be a number, got {value!r}.")
     try:
         out = float(value)
+    except OverflowError as err:  # an int past a float's range
+        raise ValueError(f"{where}: `{name}` must be a finite number > 0, got "
+                         f"{value!r:.80}.") from err
     except (TypeError, ValueError) as err:
         raise TypeError(f"{where}: `{name}` must be a number, got {value!r}.") from err
     if not np.isfinite(out) or out <= 0:
@@ -434,7 +454,11 @@ def spacing(value: Any, where: str) -> tuple[float, float, float]:
                         f"positions) and cannot be traced; close over it instead of passing "
                         f"it as a `jit` argument.")
     # a string would parse, a bool pass as 1 (also beside numbers, which NumPy promotes)
-    if holds_bool(value) or np.asarray(value).dtype.kind not in "iuf":
+    try:
+        kind = np.asarray(value).dtype.kind
+    except ValueError:  # a ragged nested list
+        kind = "O"
+    if holds_bool(value) or kind not in "iuf":
         raise TypeError(f"{where}: `spacing` must be a number or 3 numbers (d, h, w) in mm, "
                         f"got {value!r}.")
     vals = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 \
