@@ -1139,8 +1139,9 @@ def _one_at_a_time(fn):
     predicate runs both branches, the plain march of the whole volume as well as the
     bricks. Measured on 2 CPU cores, float32, 16 rays of 16 samples, R = 8, bricks of
     16: three sparse 96^3 volumes vmapped took 0.06 s where a batched cond took 0.49 s
-    (0.20 s unbricked), when this was written; now 0.060 s against 0.18 s unbricked,
-    3.0x (``python -m benchmarks.run lao --quick``, ``docs/results/bench_cpu_lao.json``).
+    (0.20 s unbricked), when this was written; at 7ad754c 0.059 s against 0.180 s
+    unbricked, 3.1x (``python -m benchmarks.run lao --quick``,
+    ``docs/results/bench_cpu_lao.json``).
 
     The loop (``jax.custom_batching.sequential_vmap``) has no derivative of its own, so
     ``fn``'s is given as a custom JVP: ``fn``'s own, batched as usual (both branches
