@@ -1188,7 +1188,10 @@ class LocalAmbientOcclusion(eqx.Module):
             ``volshade.directions.fibonacci(L)`` (default 42).
         samples, weights, opacity_correction, brick_size, implementation: as for
             :func:`lao` (defaults 16, equal weights, False, no bricks, ``"xla"``).
-        max_radius: static bound on the radius (voxels); default twice ``radius``.
+        max_radius: static bound on the radius (voxels); default twice ``radius``
+            (a radius traced when the Module is built, inside ``jit``, has no known
+            double: then none, and :func:`lao` pads by the volume's extent, same
+            values, more memory and time: give ``max_radius`` there).
 
     Raises:
         ValueError / TypeError: the errors :func:`lao` raises for these arguments,
