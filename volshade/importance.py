@@ -87,7 +87,8 @@ class Importance(eqx.Module):
             (:func:`volshade.composite`'s default) means no background layer.
         silhouette_exponent, silhouette_start, silhouette_end: $p$, $s_1$, $s_2$
             of eq. 9 (1.7, 0.4, 1.0).
-        darkening: silhouette colour darkening $k$ in $e^{-k\,sil}$ (paper: 4).
+        darkening: silhouette colour darkening $k$ in $e^{-k\,sil}$ (paper: 4); read
+            only where the ``silhouette`` weight is not 0.
         unocclusion_offset: the constant of unocclusion (paper: 20).
         specular_exponent, diffuse_exponent, gradient_exponent: $p_1$, $p_2$, $p_3$
             of eq. 10 (50, 5, 30).
@@ -683,7 +684,9 @@ class Focus(eqx.Module):
             pixels is refused: that is :func:`focus_weights`'s convention).
         radius: radius as a fraction of the image height.
         kind: ``"circular"``, ``"gaussian"`` or ``"screen_door"`` (static).
-        inside, outside: global weights at the focus centre and far from it.
+        inside, outside: global weights at the focus centre and far from it; they
+            scale the :class:`Importance` measure weights, so with all of those 0 (the
+            default) a focus changes nothing.
 
     Raises:
         ValueError: an unknown ``kind``; ``center`` not of shape ``(2,)``; when known,

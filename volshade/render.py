@@ -15,10 +15,10 @@ interpolated values would pass through the classes between two labels;
 Wittenbrink, Malzbender and Goss 1998). Opacities are corrected to each
 segment's length (:meth:`volshade.TransferFunction.opacity`).
 
-The march is a ``lax.scan`` over samples carrying all pixels at once, in chunks of
-16 samples, rematerialised in reverse mode a chunk at a time (``jax.checkpoint``),
-so memory for gradients is one compositing state per chunk plus one chunk's
-intermediates, not every intermediate. The rays are marched in four groups of
+The march is a ``lax.scan`` over samples carrying all rays of a group at once, in
+chunks of 16 samples, rematerialised in reverse mode a chunk at a time
+(``jax.checkpoint``), so memory for gradients is one compositing state per chunk plus
+one chunk's intermediates, not every intermediate. The rays are marched in four groups of
 similar length, each only as far as its longest ray reaches: a chunk past that is
 skipped (it would change nothing).
 

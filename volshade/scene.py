@@ -225,7 +225,10 @@ class Scene(eqx.Module):
             ``importance`` and optional per-ray ``focus`` weights).
         importance: :class:`~volshade.importance.Importance` weights, for
             ``composition="importance"``.
-        focus: optional :class:`~volshade.importance.Focus` (focus plus context).
+        focus: optional :class:`~volshade.importance.Focus` (focus plus context). It
+            scales the importance measures' weights per ray, so with all of them 0
+            (the default :class:`~volshade.importance.Importance`) it changes nothing
+            until a fit or the user gives one a value.
         background: ``(3,)`` RGB background colour, in [0, 1] (checked when the scene
             is built from known values; a value set by a fit or ``eqx.tree_at`` is
             checked for NaN or inf only, so a fit can converge to 0 or 1 with a
