@@ -231,13 +231,15 @@ def safe_pow(x: ArrayLike, p: ArrayLike) -> Array:
     0 in ``p`` and $p\,0^{p-1}$ in ``x``, which is 0 for $p > 1$, 1 for $p = 1$ and
     infinite for $p < 1$ (given as 0, to stay finite). Second derivatives at 0 are
     those of that branch: 0, not $p(p-1)0^{p-2}$ (2 for $p = 2$). Below 0 the value is
-    0; NaN stays NaN. For ``x > 0`` it is ``jnp.power`` (correctly rounded: as
-    ``exp(p log x)`` the rounding of ``p log x`` grew with ``p``, 40 ulps in float32
-    at ``p = 64``, and the derivative underflowed with the value).
+    0; NaN stays NaN. For ``x > 0`` it is ``exp(p log x)``, whose rounding grows with
+    ``p`` (up to 40 ulps in float32 at ``p = 64``, on [0.5, 1]) and whose derivative
+    underflows with the value: ``jnp.power``, correctly rounded, took 2.8x the time
+    and its gradient 7.4x on a CPU (4M float32 elements, ``p = 32``, medians of 21),
+    per sample of every Phong highlight.
     """
     x = jnp.asarray(x)
     positive = x > 0
     safe_x = jnp.where(positive, x, jnp.ones_like(x))
     zero = jnp.zeros_like(safe_x)
     at_zero = jnp.where((x == 0) & (jnp.asarray(p) == 1), x, zero)  # x carries the slope 1
-    return jnp.where(positive, jnp.power(safe_x, p), _nan_or(x, at_zero))
+    return jnp.where(positive, jnp.exp(p * jnp.log(safe_x)), _nan_or(x, at_zero))
