@@ -591,6 +591,21 @@ def test_bricked_equals_unbricked(brick_size, always_bricked):
     assert float(full.min()) < 0.9  # something was occluded
 
 
+def test_a_brick_wider_than_the_padding_still_reaches_its_neighbours(always_bricked):
+    # found by mutation (a review): with bricks of 4 or 5 the reach of ceil(pad / brick)
+    # bricks passed as well rounded down; a brick of 8 against a padding of 6 needs its
+    # neighbours (a blob in the corner of one brick occludes voxels in the bricks beside
+    # it, which hold no opacity)
+    alpha = np.zeros((32, 32, 32), np.float32)
+    alpha[16:19, 16:19, 16:19] = 0.9
+    kw = dict(directions=vdirs.fibonacci(6).astype(jnp.float32), radius=4.5, offset=0.5,
+              samples=5)
+    full = jax.jit(lambda a: lao(a, **kw))(alpha)
+    bricked = jax.jit(lambda a: lao(a, brick_size=8, **kw))(alpha)
+    np.testing.assert_allclose(np.asarray(bricked), np.asarray(full), rtol=0, atol=1e-7)
+    assert float(np.asarray(full)[8:16, 16:24, 16:24].min()) < 0.9  # a brick before it
+
+
 @pytest.mark.parametrize("brick_size", [None, 8])
 def test_traced_radius_far_beyond_the_volume(brick_size, always_bricked):
     # radius traced without max_radius: the padding is then only the volume extent and
