@@ -368,6 +368,16 @@ def test_traced_bad_radius_is_refused_naming_feature_ao():
         for bad, why in ((jnp.nan, "`radius` finite"), (-1.0, "`radius` must be > `offset`")):
             with pytest.raises(eqx.EquinoxRuntimeError, match=f"{name}: .*{why}"):
                 jax.block_until_ready(call(jnp.asarray(bad)))
+    # and traced directions and weights (a review: their checks' results were unread, so
+    # dropped under jit, and the march's own named volshade.lao)
+    traced = eqx.filter_jit(lambda d, w: vs.feature_ao(vol, features=features, base=base,
+                                                       directions=d, weights=w, radius=2.0,
+                                                       samples=3))
+    ones = jnp.ones(len(DIRS))
+    for args, why in (((jnp.asarray(DIRS).at[0].set(jnp.nan), ones), "`directions` holds"),
+                      ((jnp.asarray(DIRS), -ones), "`weights` must be finite, >= 0")):
+        with pytest.raises(eqx.EquinoxRuntimeError, match=f"volshade.feature_ao: {why}"):
+            jax.block_until_ready(traced(*args))
 
 
 def test_bad_inputs_raise_clear_errors():

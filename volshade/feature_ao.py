@@ -331,7 +331,10 @@ def _checked(opacities: Array, arguments: dict, where: str) -> Array:
     the first feature's opacity, so that they fail at run time naming ``where`` before
     the compiled loop's own checks, which would name ``volshade.lao``."""
     prepared = _prepare(opacities[0], **arguments, where=where)
-    return opacities.at[0].set(prepared.alpha.astype(opacities.dtype))
+    # the checked directions and weights tied in by adding 0: unread, their checks were
+    # dropped under jit, and the march's named volshade.lao
+    tie = 0 * (jnp.sum(prepared.directions) + jnp.sum(prepared.weights))
+    return opacities.at[0].set((prepared.alpha + tie).astype(opacities.dtype))
 
 
 @eqx.filter_jit
