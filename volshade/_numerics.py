@@ -110,7 +110,7 @@ def safe_sqrt(x: ArrayLike) -> Array:
     x = jnp.asarray(x)
     positive = x > 0
     safe_x = jnp.where(positive, x, jnp.ones_like(x))
-    return jnp.where(positive, jnp.sqrt(safe_x), jnp.where(x <= 0, jnp.zeros_like(x), x))
+    return jnp.where(positive, jnp.sqrt(safe_x), _nan_or(x, jnp.zeros_like(x)))
 
 
 def safe_norm(x: ArrayLike, axis: int = -1, keepdims: bool = False) -> Array:
