@@ -414,14 +414,16 @@ def test_importance_forward_mode_equals_reverse_mode_on_hard_cases(dtype):
     bg = jnp.asarray([0.25, 0.5, 0.75], dtype)
     rays = [_hard_inputs(*HARD_CASES[case], dtype) for case in sorted(HARD_CASES)]
     c, a, imp = (jnp.stack(x) for x in zip(*rays, strict=True))
+
+    def f(c, a, imp, bgi):
+        return composite(c, a, importance=imp, background=bg, background_importance=bgi)
+
+    # both modes in one program, the background importance an argument: one compile for
+    # the three of them
+    jacobians = jax.jit(lambda *args: (jax.jacfwd(f, (0, 1, 2))(*args),
+                                       jax.jacrev(f, (0, 1, 2))(*args)))
     for bgi in (-jnp.inf, 0.0, 1e4):
-        bgi = jnp.asarray(bgi, dtype)
-
-        def f(c, a, imp, bgi=bgi):
-            return composite(c, a, importance=imp, background=bg, background_importance=bgi)
-
-        fwd = jax.jit(jax.jacfwd(f, (0, 1, 2)))(c, a, imp)
-        rev = jax.jit(jax.jacrev(f, (0, 1, 2)))(c, a, imp)
+        fwd, rev = jacobians(c, a, imp, jnp.asarray(bgi, dtype))
         _assert_grads_equal(fwd, rev, 1e-12 if dtype == jnp.float64 else 1e-5)
         assert float(jnp.max(jnp.abs(fwd[2]))) > 1e-3  # the importances move the colour
 
@@ -445,15 +447,19 @@ def test_importance_derivatives_under_vmap_of_some_arguments(axes):
     def element(b, *xs):
         return f(*(x[b] if ax is not None else x for x, ax in zip(xs, axes, strict=True)))
 
-    grad = jax.jit(jax.grad(lambda *xs: jnp.sum(jnp.sin(jax.vmap(f, axes)(*xs))), (0, 1, 2)))
-    want = jax.grad(lambda *xs: sum(jnp.sin(element(b, *xs)) for b in range(2)), (0, 1, 2))
-    _assert_grads_equal(grad(*args), want(*args), 1e-12)
     ones = tuple(jnp.ones_like(x) for x in args)
-    tangent = jax.jvp(jax.vmap(f, axes), args, ones)[1]
-    for b in range(2):
-        np.testing.assert_allclose(
-            float(tangent[b]), float(jax.jvp(lambda *xs, b=b: element(b, *xs), args, ones)[1]),
-            rtol=1e-12)
+
+    @jax.jit  # one program (eagerly, the loop's derivatives compiled about 80)
+    def derivatives(*xs):
+        grad = jax.grad(lambda *xs: jnp.sum(jnp.sin(jax.vmap(f, axes)(*xs))), (0, 1, 2))
+        want = jax.grad(lambda *xs: sum(jnp.sin(element(b, *xs)) for b in range(2)), (0, 1, 2))
+        tangent = jax.jvp(jax.vmap(f, axes), xs, ones)[1]
+        looped = [jax.jvp(lambda *xs, b=b: element(b, *xs), xs, ones)[1] for b in range(2)]
+        return grad(*xs), want(*xs), tangent, jnp.stack(looped)
+
+    grad, want, tangent, looped = derivatives(*args)
+    _assert_grads_equal(grad, want, 1e-12)
+    np.testing.assert_allclose(tangent, looped, rtol=1e-12)
 
 
 def test_custom_vjp_any_state_cotangent():
@@ -524,8 +530,8 @@ def test_grad_under_vmap_equals_batched_grad():
     c, a, imp = map(jnp.asarray, random_rays(6, 7, seed=24))
     bg, bgi = jnp.asarray([0.2, 0.4, 0.6]), jnp.asarray(0.5)
     batched = _jit_grad(c, a, imp, bg, bgi)
-    per_ray = jax.vmap(jax.grad(_loss, argnums=(0, 1, 2)), in_axes=(0, 0, 0, None, None))(
-        c, a, imp, bg, bgi)
+    per_ray = jax.jit(jax.vmap(jax.grad(_loss, argnums=(0, 1, 2)),
+                               in_axes=(0, 0, 0, None, None)))(c, a, imp, bg, bgi)
     for x, y in zip(per_ray, batched[:3], strict=True):
         np.testing.assert_allclose(x, y, atol=1e-13)
 
@@ -714,8 +720,8 @@ def test_half_precision_is_composited_in_float32(dtype):
     wide = [x.astype(jnp.float32) for x in (a, imp)]
     np.testing.assert_array_equal(out, composite(wide[0][:, None] * jnp.eye(3), wide[0],
                                                  importance=wide[1]).astype(dtype))
-    got = jax.grad(loss, argnums=(0, 1))(a, imp)
-    want = jax.grad(loss, argnums=(0, 1))(*wide)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))  # (eagerly: about 50 small programs)
+    got, want = grad(a, imp), grad(*wide)
     for g, w in zip(got, want, strict=True):
         assert g.dtype == dtype and np.all(np.isfinite(np.asarray(g, np.float32)))
         np.testing.assert_allclose(np.asarray(g, np.float32), w, rtol=1e-2, atol=1e-3)
@@ -812,10 +818,11 @@ def test_standard_composite_in_forward_and_reverse_mode():
 
 
 @pytest.mark.parametrize("n_samples", [0, 1, 7, 8, 9, 17])
-@pytest.mark.parametrize("batch", [(), (2,), (2, 3)])
+@pytest.mark.parametrize("batch", [(), (2, 3)])
 def test_values_read_in_place_equal_the_scan(n_samples, batch):
     # a CPU computes values reading 8 or 4 samples per iteration where they lie, then the rest;
-    # reverse mode and other platforms scan the samples moved in front
+    # reverse mode and other platforms scan the samples moved in front. (The steps index
+    # the batch as `...`: a batch of one axis, (2,), took the path of (2, 3).)
     rng = np.random.default_rng(n_samples)
     a = rng.uniform(0, 1, (*batch, n_samples))
     a = np.where(rng.uniform(size=a.shape) < 0.2, rng.integers(0, 2, a.shape), a)
@@ -823,12 +830,15 @@ def test_values_read_in_place_equal_the_scan(n_samples, batch):
     imp = rng.normal(0, 3, (*batch, n_samples))
     for step, init, i in ((standard_step, standard_init, None),
                           (importance_step, importance_init, imp)):
-        state = init(batch, jnp.float64)
-        for chunk in (4, 8):
-            got = jax.jit(lambda s, c, a, i, step=step, chunk=chunk: _scan_in_place(
-                step, chunk, s, c, a, i))(state, c, a, i)
-            want = _scan(step, state, _samples(*map(jnp.asarray, (c, a)),
-                                               None if i is None else jnp.asarray(i)), 1)
+        # both chunks and the scan in one program per step (three, and the scan's eager
+        # pieces, before)
+        @jax.jit
+        def both_ways(s, c, a, i, step=step):
+            in_place = [_scan_in_place(step, chunk, s, c, a, i) for chunk in (4, 8)]
+            return in_place, _scan(step, s, _samples(c, a, i), 1)
+
+        in_place, want = both_ways(init(batch, jnp.float64), c, a, i)
+        for got in in_place:
             for x, y in zip(got, want, strict=True):
                 np.testing.assert_allclose(x, y, rtol=1e-14, atol=1e-15)
 
@@ -902,16 +912,17 @@ def test_unroll_changes_no_value_or_gradient_and_defaults_by_backend(monkeypatch
     c, a, imp = random_rays(5, 11, seed=3)
 
     def loss(c, a, i, unroll):
-        return jnp.sum(jnp.sin(3 * composite(c, a, importance=i, unroll=unroll)))
+        rgba = composite(c, a, importance=i, unroll=unroll)
+        return jnp.sum(jnp.sin(3 * rgba)), rgba
 
+    # the value and the gradient as one program per unroll
+    value_and_grad = jax.jit(jax.value_and_grad(loss, (0, 1), has_aux=True), static_argnums=3)
     for importance in (None, imp):
-        want = composite(c, a, importance=importance, unroll=1)
-        grads = jax.grad(loss, (0, 1))(c, a, importance, 1)
+        (_, want), grads = value_and_grad(c, a, importance, 1)
         for unroll in (None, 4):  # 4 leaves a remainder of 3 of the 11 samples
-            np.testing.assert_allclose(composite(c, a, importance=importance, unroll=unroll),
-                                       want, rtol=1e-13, atol=1e-15)
-            for got, ref_grad in zip(jax.grad(loss, (0, 1))(c, a, importance, unroll), grads,
-                                     strict=True):
+            (_, value), got_grads = value_and_grad(c, a, importance, unroll)
+            np.testing.assert_allclose(value, want, rtol=1e-13, atol=1e-15)
+            for got, ref_grad in zip(got_grads, grads, strict=True):
                 np.testing.assert_allclose(got, ref_grad, rtol=1e-12, atol=1e-14)
     with pytest.raises(ValueError, match="`unroll` must be >= 1"):
         composite(c, a, unroll=0)

@@ -399,8 +399,9 @@ def test_normalized_gradient_magnitude():
     np.testing.assert_allclose(m, np.broadcast_to(want[:, None, None], m.shape), rtol=1e-14)
     np.testing.assert_array_equal(normalized_gradient_magnitude(jnp.zeros((4, 4, 4, 3))), 0)
     # a constant volume: the norm's derivative at the zero vector is taken as 0, not NaN
-    g = jax.grad(lambda v: normalized_gradient_magnitude(regression_gradient(v, size=3)).sum())(
-        jnp.zeros((6, 6, 6)))
+    # (compiled: eagerly, about 100 small programs)
+    g = jax.jit(jax.grad(lambda v: normalized_gradient_magnitude(
+        regression_gradient(v, size=3)).sum()))(jnp.zeros((6, 6, 6)))
     np.testing.assert_array_equal(g, 0)
     with pytest.raises(ValueError, match="D, H, W, 3"):
         normalized_gradient_magnitude(jnp.zeros((4, 4, 3)))

@@ -4,6 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import check_grad_fd
+from jax.flatten_util import ravel_pytree
 
 from volshade import transfer
 from volshade.transfer import IntervalFeature, TransferFunction, feature_opacities
@@ -54,12 +55,13 @@ def test_transfer_function_under_jit_vmap_grad():
     np.testing.assert_allclose(jax.jit(lambda t, v: t.opacity(v, step=0.5))(tf, x),
                                tf.opacity(x, step=0.5))
     opacities = jnp.stack([tf.opacities, 2 * tf.opacities / 3])
-    batch = jax.vmap(lambda o: TransferFunction(tf.points, tf.colors, o).opacity(x))(opacities)
+    batch = jax.jit(jax.vmap(lambda o: TransferFunction(tf.points, tf.colors, o).opacity(x)))(
+        opacities)
     for got, o in zip(batch, opacities, strict=True):
         np.testing.assert_allclose(got, TransferFunction(tf.points, tf.colors, o).opacity(x),
                                    rtol=0, atol=1e-15)
     np.testing.assert_allclose(batch[0], [0, 0.2, 0.4, 0.6, 0.8], rtol=1e-15)  # not all zero
-    g = jax.grad(lambda t: jnp.sum(t.opacity(x, step=2.0)))(tf)
+    g = jax.jit(jax.grad(lambda t: jnp.sum(t.opacity(x, step=2.0))))(tf)
     assert np.all(np.isfinite(g.opacities)) and np.all(np.isfinite(g.points))
     assert float(jnp.sum(jnp.abs(g.opacities))) > 0
 
@@ -72,17 +74,19 @@ def test_gradient_wrt_control_points_and_values_matches_finite_differences():
     x = jnp.asarray(np.random.default_rng(0).uniform(0.02, 0.98, 40))
     w = jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, (40, 5)))
 
-    def loss_of(field):
-        @jax.jit
-        def loss(values):
-            t = eqx.tree_at(lambda t: getattr(t, field), tf,
-                            values.reshape(getattr(tf, field).shape))
-            return (jnp.sum(w[:, 0] * t.opacity(x, step=2.0)) + jnp.sum(w[:, 1] * t.extinction(x))
-                    + jnp.sum(w[:, 2:] * t.color(x)))
-        return loss
+    fields = ("points", "colors", "opacities")
+    flat, unravel = ravel_pytree([getattr(tf, field) for field in fields])
 
-    for field in ("points", "colors", "opacities"):
-        g = check_grad_fd(loss_of(field), getattr(tf, field).ravel(), n_dirs=4)
+    # the three fields as one vector: one program and its gradient (one per field before),
+    # 12 directions among them (4 per field before)
+    @jax.jit
+    def loss(values):
+        t = eqx.tree_at(lambda t: [getattr(t, field) for field in fields], tf, unravel(values))
+        return (jnp.sum(w[:, 0] * t.opacity(x, step=2.0)) + jnp.sum(w[:, 1] * t.extinction(x))
+                + jnp.sum(w[:, 2:] * t.color(x)))
+
+    grads = unravel(check_grad_fd(loss, flat, n_dirs=12))
+    for field, g in zip(fields, grads, strict=True):
         assert float(jnp.min(jnp.abs(g))) > 1e-3, (field, g)  # every control value matters
     # analytically: at x between p0 and p1 the opacity is a0 + (a1 - a0) (x - p0) / (p1 - p0),
     # so d/dp0 = (a1 - a0) (x - p1) / (p1 - p0)^2 and d/dp1 = -(a1 - a0) (x - p0) / (p1 - p0)^2
