@@ -32,12 +32,13 @@ def temp_bytes(f, *specs) -> int:
     return jax.jit(f).lower(*specs).compile().memory_analysis().temp_size_in_bytes
 
 
-def check_grad_fd(f, x, *, key=0, h=1e-6, rtol=1e-4, n_dirs=3):
-    """Compare ``jax.grad(f)(x) . v`` with central differences along random ``v``."""
+def check_grad_fd(f, x, *, key=0, h=1e-6, rtol=1e-4, n_dirs=3, directions=None):
+    """Compare ``jax.grad(f)(x) . v`` with central differences along ``directions`` (an
+    ``(n, *x.shape)`` array, each normalised here), by default ``n_dirs`` random ones."""
     g = jax.jit(jax.grad(f))(x)
-    rng = np.random.default_rng(key)
-    for _ in range(n_dirs):
-        v = jnp.asarray(rng.standard_normal(np.shape(x)))
+    if directions is None:
+        directions = np.random.default_rng(key).standard_normal((n_dirs, *np.shape(x)))
+    for v in jnp.asarray(directions):
         v = v / jnp.linalg.norm(v)
         ad = float(jnp.vdot(g, v))
         fd = float(central_difference(f, x, v, h))
