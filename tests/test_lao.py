@@ -335,11 +335,13 @@ def test_forward_mode_is_the_transpose_of_reverse_mode(always_bricked):
                    opacity_correction=True, brick_size=brick)
 
     for brick in (None, 4):
-        jvps = jax.jit(jax.vmap(lambda ta, tr, b=brick: jax.jvp(
-            lambda a, r: f(a, r, 0.6, b), (alpha, 2.7), (ta, tr))[1]))(t, jnp.asarray(
-                [0.0, 1.0, -0.5]))
-        g_alpha, g_r = jax.jit(jax.grad(lambda a, r, b=brick: jnp.sum(c * f(a, r, 0.6, b)),
-                                        (0, 1)))(alpha, 2.7)
+        # both modes from one compiled program
+        def both(t, tr, b=brick):
+            jvps = jax.vmap(lambda ta, tr: jax.jvp(lambda a, r: f(a, r, 0.6, b), (alpha, 2.7),
+                                                   (ta, tr))[1])(t, tr)
+            return jvps, jax.grad(lambda a, r: jnp.sum(c * f(a, r, 0.6, b)), (0, 1))(alpha, 2.7)
+
+        jvps, (g_alpha, g_r) = jax.jit(both)(t, jnp.asarray([0.0, 1.0, -0.5]))
         for i, tr in enumerate((0.0, 1.0, -0.5)):
             want = float(jnp.vdot(g_alpha, t[i]) + g_r * tr)
             assert abs(float(jnp.vdot(c, jvps[i])) - want) <= 1e-12 * abs(want)
@@ -352,8 +354,8 @@ def test_forward_mode_is_the_transpose_of_reverse_mode(always_bricked):
         def at(y, b=brick, near=near):
             return f(alpha, y[0], y[1], b).ravel()[near]
 
-        fwd = jax.jacfwd(at)(jnp.asarray([2.7, 0.6]))
-        rev = jax.jacrev(at)(jnp.asarray([2.7, 0.6]))
+        fwd, rev = jax.jit(lambda y, at=at: (jax.jacfwd(at)(y), jax.jacrev(at)(y)))(
+            jnp.asarray([2.7, 0.6]))
         assert float(jnp.min(jnp.max(jnp.abs(fwd), axis=0))) > 1e-3
         np.testing.assert_allclose(np.asarray(fwd), np.asarray(rev), rtol=1e-11, atol=1e-14)
 
@@ -413,18 +415,20 @@ def test_hessian_in_radius_and_offset(always_bricked):
                  brick_size=brick)
         return jnp.sum(c * ao**2)
 
+    # jax.hessian(loss) is jax.jacfwd(jax.jacrev(loss)), written out so that one program
+    # also returns the gradient (the primal of its forward mode) for the differences
+    hessian_and_grad = jax.jit(jax.jacfwd(lambda v, b: (jax.jacrev(loss)(v, b),) * 2,
+                                          has_aux=True), static_argnums=1)
     y = jnp.asarray([3.3, 0.7])
-    grad = jax.jit(jax.grad(loss), static_argnums=1)
     for brick in (None, 4):
-        hessian = jax.jit(jax.hessian(loss), static_argnums=1)(y, brick)
-        fd = jnp.stack([central_difference(lambda v, b=brick: grad(v, b), y, e, 1e-5)
-                        for e in jnp.eye(2)], 1)
+        hessian = hessian_and_grad(y, brick)[0]
+        fd = jnp.stack([central_difference(lambda v, b=brick: hessian_and_grad(v, b)[1], y, e,
+                                           1e-5) for e in jnp.eye(2)], 1)
         assert float(jnp.max(jnp.abs(fd))) > 1e-3
         np.testing.assert_allclose(np.asarray(hessian), np.asarray(fd), rtol=1e-6, atol=1e-9)
         np.testing.assert_allclose(np.asarray(hessian), np.asarray(hessian).T, rtol=1e-12)
 
 
-@pytest.mark.slow
 def test_second_derivatives_in_the_opacity(always_bricked):
     # a Hessian-vector product in the opacity (forward over reverse) against differences
     # of the gradient; with bricks a skipped brick's derivative is taken at zero opacity,
@@ -448,7 +452,8 @@ def test_second_derivatives_in_the_opacity(always_bricked):
                                atol=1e-6 * float(jnp.max(jnp.abs(fd))))
     with pytest.raises(ValueError, match="second derivatives in the opacity are not "
                                          "available with `brick_size`.*brick_size=None"):
-        jax.jvp(jax.grad(lambda a: loss(a, 4)), (alpha,), (v,))
+        # (refused while tracing: under jit nothing is compiled first)
+        jax.jit(lambda a: jax.jvp(jax.grad(lambda a: loss(a, 4)), (a,), (v,)))(alpha)
 
 
 def test_bricked_reverse_mode_keeps_no_transform_of_the_skipped_kernel():

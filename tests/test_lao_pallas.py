@@ -135,8 +135,10 @@ def test_gradients_match_xla_march(case):
     def loss(implementation):
         return lambda *args: jnp.sum(ct * _call(case, implementation, *args))
 
-    got = jax.grad(loss("pallas"), argnums=(0, 1, 2, 3))(alpha, radius, offset, weights)
-    want = jax.grad(loss("xla"), argnums=(0, 1, 2, 3))(alpha, radius, offset, weights)
+    # both VJPs from one compiled program
+    got, want = jax.jit(lambda *args: tuple(jax.grad(loss(impl), argnums=(0, 1, 2, 3))(*args)
+                                            for impl in ("pallas", "xla")))(
+        alpha, radius, offset, weights)
     for g, w in zip(got, want, strict=True):
         assert np.all(np.isfinite(g))
         np.testing.assert_allclose(g, w, rtol=1e-11, atol=1e-11)
@@ -172,11 +174,12 @@ def test_forward_mode_is_the_transpose_of_reverse_mode_and_refuses_second_deriva
         return jnp.sum(ct * _call(1, "pallas", alpha, y[0], y[1], None))
 
     y = jnp.asarray([3.3, 0.4])
-    np.testing.assert_allclose(jax.jacfwd(loss)(y), jax.jacrev(loss)(y), rtol=1e-11)
+    fwd, rev = jax.jit(lambda y: (jax.jacfwd(loss)(y), jax.jacrev(loss)(y)))(y)
+    np.testing.assert_allclose(fwd, rev, rtol=1e-11)
     message = "second derivatives are not available with implementation='pallas'"
     for second in (jax.hessian, lambda f: jax.jacfwd(jax.jacfwd(f))):
-        with pytest.raises(ValueError, match=message):
-            second(loss)(y)
+        with pytest.raises(ValueError, match=message):  # (while tracing: nothing compiles)
+            jax.jit(second(loss))(y)
 
 
 _LAUNCH_CASE = dict(dirs=vdirs.fibonacci(4), weights=jnp.asarray([0.1, 0.2, 0.3, 0.4]),
@@ -233,12 +236,14 @@ def test_radius_and_opacity_gradients_match_finite_differences():
     def loss(a, r):
         return jnp.sum(ct * _call(0, "pallas", a, r, offset, None))
 
-    # both gradients from one reverse pass (one backward program, not one per argument)
-    g_alpha, g_radius = jax.grad(loss, argnums=(0, 1))(alpha, radius)
-    fd = central_difference(lambda r: loss(alpha, r), radius, 1.0)
+    # both gradients from one reverse pass (one backward program, not one per argument),
+    # and every difference from one compiled loss
+    g_alpha, g_radius = jax.jit(jax.grad(loss, argnums=(0, 1)))(alpha, radius)
+    value = jax.jit(loss)
+    fd = central_difference(lambda r: value(alpha, r), radius, 1.0)
     np.testing.assert_allclose(g_radius, fd, rtol=1e-4)
     direction = jnp.zeros_like(alpha).at[4, 6, 3].set(1.0).at[5, 5, 4].set(-0.5)
-    fd = central_difference(lambda a: loss(a, radius), alpha, direction)
+    fd = central_difference(lambda a: value(a, radius), alpha, direction)
     np.testing.assert_allclose(jnp.vdot(g_alpha, direction), fd, rtol=1e-4)
 
 
@@ -266,7 +271,7 @@ def test_vmap_over_volumes_and_radii():
 def test_module_and_filter_grad():
     alpha = _alpha((8, 8, 8), 4)
     kw = dict(directions=6, samples=5, opacity_correction=True)
-    grads = [eqx.filter_grad(lambda m: jnp.sum(m(alpha)))(
+    grads = [eqx.filter_jit(eqx.filter_grad(lambda m: jnp.sum(m(alpha))))(
         LocalAmbientOcclusion(3.0, implementation=impl, **kw)) for impl in ("pallas", "xla")]
     np.testing.assert_allclose(grads[0].radius, grads[1].radius, rtol=1e-12)
     np.testing.assert_allclose(grads[0].offset, grads[1].offset, rtol=1e-12)
