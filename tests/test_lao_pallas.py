@@ -454,14 +454,13 @@ def test_scene_renders_with_the_pallas_march():
 
 
 @pytest.mark.slow
-def test_a_fit_through_the_pallas_march_equals_the_xla_one():
+def test_a_fit_through_the_pallas_march_recovers_the_radius_of_an_xla_render():
     """The fit's solvers use forward mode (a least-squares Jacobian), which the Pallas
-    march takes from the XLA march's tangent pass: the same value as a fit through the
-    XLA march. (Its custom VJP had no forward mode, and the fit refused it by name.)
-    Not the same number of steps: once the loss is down to rounding (1e-32), when the
-    solver stops depends on the rounding, which differs between the two marches (12
-    and 7 steps with the default XLA flags; equal at the suite's optimisation level
-    until a change to the camera's checks moved XLA's fusion)."""
+    march takes from the XLA march's tangent pass. (Its custom VJP had no forward mode,
+    and the fit refused it by name.) The target is rendered by the XLA march: a loss down
+    to 1e-20 (residuals of 1e-10) at the true radius says that the Pallas march renders
+    the XLA march's image there and that the fit finds it. A second fit, through the XLA
+    march, compiled a solver of its own (about 6 s) to show what test_fit.py shows."""
     from volshade import Camera, Scene, fit, render
     from volshade.transfer import preset
 
@@ -474,11 +473,7 @@ def test_a_fit_through_the_pallas_march_equals_the_xla_one():
                                                implementation=implementation))
 
     target = render(scene("xla", 3.0), cam)
-    results = [fit(scene(impl, 2.2), cam, target, params={"lao.radius": (1.0, 4.0)})
-               for impl in ("pallas", "xla")]
-    for result in results:
-        assert int(result.steps) > 0 and float(result.loss) < 1e-20
-        np.testing.assert_allclose(float(result.values["lao.radius"]), 3.0, atol=1e-6)
-    np.testing.assert_allclose(results[0].values["lao.radius"],
-                               results[1].values["lao.radius"], rtol=1e-10)
+    result = fit(scene("pallas", 2.2), cam, target, params={"lao.radius": (1.0, 4.0)})
+    assert int(result.steps) > 0 and float(result.loss) < 1e-20
+    np.testing.assert_allclose(float(result.values["lao.radius"]), 3.0, atol=1e-6)
 
