@@ -392,7 +392,8 @@ def test_lao_gradients_at_opacity_zero_and_one(value, radius, offset):
     # alpha = 0 or 1 everywhere, corrected opacities: with step ratios 1 and 2 the AO is
     # a polynomial in alpha up to the ends of [0, 1], so one-sided differences (into
     # [0, 1]) must match; at alpha = 1 and ratio 2 the derivative is exactly 0
-    alpha = jnp.full((6, 6, 6), value)
+    # (float64, not weakly typed: the tests below share the compiled loss and gradient)
+    alpha = jnp.full((6, 6, 6), value, jnp.float64)
     r, a = jnp.float64(radius), jnp.float64(offset)
     g_alpha, g_r, g_a = _lao_grad_jit(alpha, r, a)
     assert _finite(g_alpha, g_r, g_a)
@@ -418,7 +419,8 @@ def test_lao_opaque_blocks_blend_to_exactly_one_in_any_direction(implementation)
             return jnp.sum(vs.lao(a, directions=dirs.astype(dtype), radius=2.0, offset=0.3,
                                   samples=5, opacity_correction=True,
                                   implementation=implementation))
-        value, grad = jax.value_and_grad(loss)(jnp.ones((6, 6, 6), dtype))
+        # compiled whole (eagerly, the forward and backward passes were compiled apart)
+        value, grad = jax.jit(jax.value_and_grad(loss))(jnp.ones((6, 6, 6), dtype))
         values.append(float(value))
         grads.append(np.asarray(grad, np.float64))
     assert np.max(np.abs(grads[0])) < 1  # the border's rays leave the block: O(1) slopes
@@ -430,7 +432,7 @@ def test_lao_opaque_blocks_blend_to_exactly_one_in_any_direction(implementation)
 def test_lao_radius_gradient_at_opacity_zero_and_one(value):
     # a radius off the kinks (samples between voxel centres): d/dR and d/da match central
     # differences; with alpha = 0 the AO is exactly 1 for every radius
-    alpha = jnp.full((6, 6, 6), value)
+    alpha = jnp.full((6, 6, 6), value, jnp.float64)
     r, a = jnp.float64(5.3), jnp.float64(0.6)
     _, g_r, g_a = _lao_grad_jit(alpha, r, a)
     for g, x, f in ((g_r, r, lambda x: _lao_loss_jit(alpha, x, a)),
@@ -450,7 +452,15 @@ def test_lao_gradients_at_boundary_radius_match_finite_differences():
     r, a = jnp.float64(8.0), jnp.float64(0.0)
     g_alpha, g_r, g_a = _lao_grad_jit(alpha, r, a)
     assert _finite(g_alpha, g_r, g_a)
-    check_grad_fd(lambda x: _lao_loss_jit(x, r, a), alpha, n_dirs=2)
+    # check_grad_fd's test (its directions, key 0) of the gradient compiled above, not of
+    # one compiled again for a new function
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        v = jnp.asarray(rng.standard_normal(alpha.shape))
+        v = v / jnp.linalg.norm(v)
+        ad = float(jnp.vdot(g_alpha, v))
+        fd = float(central_difference(lambda x: _lao_loss_jit(x, r, a), alpha, v))
+        assert abs(ad - fd) <= 1e-4 * max(abs(fd), abs(ad), 1e-8), (ad, fd)
     # at the kink the radius derivative lies between the one-sided differences
     f = lambda x: _lao_loss_jit(alpha, x, a)  # noqa: E731
     h, at = 1e-6, float(f(r))
@@ -506,7 +516,7 @@ def test_colour_bleeding_without_occluders_is_the_ambient_colour():
                               colors=np.asarray(colors, float), ambient=amb)
     np.testing.assert_allclose(np.asarray(out, float), want, rtol=4 * jnp.finfo(dtype).eps)
     # d/dcolours = 0 (nothing reflects), d/dambient = the number of voxels
-    g_c, g_amb = jax.grad(lambda c, a: jnp.sum(f(density, c, a)), (0, 1))(
+    g_c, g_amb = jax.jit(jax.grad(lambda c, a: jnp.sum(f(density, c, a)), (0, 1)))(
         colors, jnp.asarray(amb, dtype))
     assert bool(jnp.all(g_c == 0))
     np.testing.assert_allclose(np.asarray(g_amb), np.full(3, np.prod(shape)), rtol=1e-14)
@@ -518,9 +528,10 @@ def test_obscurance_d_max_gradient_below_a_voxel_is_zero_not_nan(rho):
     # float32 squared d_max = 1e-20 to 0 in the slope of rho(d_max, d_max), which the
     # unoccluded directions compute and discard (0 * inf was NaN)
     density = jnp.asarray(np.random.default_rng(3).uniform(0, 1, (4, 5, 3)), jnp.float32)
+    value_and_grad = jax.jit(jax.value_and_grad(lambda m: jnp.sum(
+        obscurance(density, directions=DIRS12, d_max=m, rho=rho))))  # compiled once, whole
     for d_max in (0.5, 1e-20):
-        out, grad = jax.value_and_grad(lambda m: jnp.sum(
-            obscurance(density, directions=DIRS12, d_max=m, rho=rho)))(jnp.float32(d_max))
+        out, grad = value_and_grad(jnp.float32(d_max))
         assert float(out) == density.size and float(grad) == 0.0
 
 
@@ -562,9 +573,10 @@ def test_regression_gradient_of_volumes_smaller_than_the_kernel(shape, size):
                          for e in np.eye(f.size)])
     np.testing.assert_allclose(np.asarray(vjp).ravel(),
                                np.tensordot(jacobian, cotangent, f.ndim + 1), rtol=0, atol=1e-12)
-    # a constant field: exactly 0, whatever the edge replication
+    # a constant field: exactly 0, whatever the edge replication (in f's dtype: a weakly
+    # typed field compiled the fit again)
     for value in (0.0, 0.37, 1.0):
-        assert bool(jnp.all(grad(jnp.full(shape, value))[0] == 0))
+        assert bool(jnp.all(grad(jnp.full(shape, value, f.dtype))[0] == 0))
 
 
 @pytest.mark.parametrize(("dtype", "size"), [(jnp.float32, 5), (jnp.float64, 3)])

@@ -3,7 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import check_grad_fd, run_with_user_xla_flags
+from helpers import central_difference, run_with_user_xla_flags
 
 import volshade as vs
 from volshade.camera import Camera, box_half_extent, intersect_box
@@ -35,6 +35,25 @@ def _ortho_along_h(image_shape=(6, 6), width=1.5):
     # Azimuth 0, elevation 0: parallel rays along -h.
     return Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=image_shape,
                         projection="orthographic", width=width)
+
+
+def _check_grads_fd(value_and_grad, args, wrt, *, rtol=1e-4, n_dirs=3):
+    """helpers.check_grad_fd for each argument ``i`` in ``wrt`` of a jitted
+    ``value_and_grad(*args) -> (loss, gradients of every argument)``, the central
+    differences taken of its loss: one compiled program, where a jitted loss and its
+    jitted gradient were two per argument checked (1-4 s apiece to compile). The
+    directions are check_grad_fd's (its key 0, for each argument). Returns the gradients."""
+    _, grads = value_and_grad(*args)
+    for i in wrt:
+        rng = np.random.default_rng(0)
+        for _ in range(n_dirs):
+            v = jnp.asarray(rng.standard_normal(np.shape(args[i])))
+            v = v / jnp.linalg.norm(v)
+            ad = float(jnp.vdot(grads[i], v))
+            fd = float(central_difference(
+                lambda x, i=i: value_and_grad(*args[:i], x, *args[i + 1:])[0], args[i], v))
+            assert abs(ad - fd) <= rtol * max(abs(fd), abs(ad), 1e-8), (i, ad, fd)
+    return grads
 
 
 def _smooth_volume(n=10, seed=0):
@@ -101,7 +120,6 @@ def test_opacity_correction_converges_as_step_shrinks():
     assert errors[-1] < 0.2 * errors[0]
 
 
-@pytest.mark.slow
 def test_gradient_wrt_transfer_function_matches_finite_differences():
     vol = _smooth_volume(8)
     # control values inside (0, 1), so that the differences stay in the valid range
@@ -110,16 +128,14 @@ def test_gradient_wrt_transfer_function_matches_finite_differences():
     cam = Camera.orbit(azimuth=25.0, elevation=10.0, image_shape=(6, 6))
     weights = jnp.asarray(np.random.default_rng(3).random((6, 6, 4)))
 
-    def loss_of(field):
-        @jax.jit
-        def loss(values):
-            shape = getattr(tf, field).shape
-            t = eqx.tree_at(lambda t: getattr(t, field), tf, values.reshape(shape))
-            return jnp.sum(weights * march(vol, t, cam, step=0.5, shading="phong"))
-        return loss
+    # both fields' gradients, and the losses differenced, from one compiled program
+    def loss(colors, opacities):
+        t = eqx.tree_at(lambda t: (t.colors, t.opacities), tf, (colors, opacities))
+        return jnp.sum(weights * march(vol, t, cam, step=0.5, shading="phong"))
 
-    for field in ("opacities", "colors"):
-        g = check_grad_fd(loss_of(field), getattr(tf, field).ravel(), rtol=1e-4)
+    grads = _check_grads_fd(jax.jit(jax.value_and_grad(loss, (0, 1))),
+                            (tf.colors, tf.opacities), (0, 1), rtol=1e-4)
+    for g in grads:
         assert float(jnp.max(jnp.abs(g))) > 0
 
 
@@ -163,20 +179,21 @@ def test_gradient_wrt_camera_matches_finite_differences():
                                        (1.0, 0.9, 0.9, 0.95, 0.7)])
     weights = jnp.asarray(np.random.default_rng(4).random((5, 4, 4)))
 
-    @jax.jit
+    # (each loss and its gradient from one compiled program)
     def by_angles(angles):
         cam = Camera.orbit(azimuth=angles[0], elevation=angles[1], image_shape=(5, 4))
         return jnp.sum(weights * march(vol, tf, cam, step=0.5, shading="phong"))
 
-    @jax.jit
     def by_eye(eye):
         cam = Camera(eye, jnp.zeros(3), jnp.asarray([1.0, 0.0, 0.0]), jnp.asarray(30.0),
                      jnp.asarray(0.9), image_shape=(5, 4), projection="orthographic")
         return jnp.sum(weights * march(vol, tf, cam, step=0.5))
 
-    g = check_grad_fd(by_angles, jnp.asarray([25.0, 10.0]), rtol=1e-4)
+    (g,) = _check_grads_fd(jax.jit(jax.value_and_grad(by_angles, (0,))),
+                           (jnp.asarray([25.0, 10.0]),), (0,), rtol=1e-4)
     assert np.all(np.abs(np.asarray(g)) > 1e-6)
-    g = check_grad_fd(by_eye, jnp.asarray([0.6, 1.9, 0.9]), rtol=1e-4)
+    (g,) = _check_grads_fd(jax.jit(jax.value_and_grad(by_eye, (0,))),
+                           (jnp.asarray([0.6, 1.9, 0.9]),), (0,), rtol=1e-4)
     assert float(jnp.max(jnp.abs(g))) > 1e-6
 
 
@@ -256,10 +273,13 @@ def test_no_nan_gradients_on_edge_volumes(shading):
 
     @jax.jit
     def image_and_derivatives(vol, t):
-        img = march(vol, t, cam, shading=shading)
-        jac = jax.jacrev(lambda v: march(v, t, cam, shading=shading))(vol)
-        g_tf = jax.grad(lambda u: jnp.sum(march(vol, u, cam, shading=shading)))(t)
-        return img, jac, g_tf
+        # one forward and one batched backward pass (jax.jacrev's, for the volume and the
+        # transfer function together; the gradient of the sum is the sum of the rows)
+        img, pullback = jax.vjp(lambda v, u: march(v, u, cam, shading=shading), vol, t)
+        rows = jnp.eye(img.size, dtype=img.dtype).reshape(img.size, *img.shape)
+        jac, jac_tf = jax.vmap(pullback)(rows)
+        g_tf = jax.tree.map(lambda j: jnp.sum(j, axis=0), jac_tf)
+        return img, jac, jac_tf, g_tf
 
     corner = jnp.zeros((5, 5, 5)).at[0, 0, 0].set(1.0)
     for vol in (jnp.zeros((5, 5, 5)), jnp.ones((5, 5, 5)), corner, jnp.ones((1, 1, 1))):
@@ -593,19 +613,19 @@ def test_pre_classification_jit_vmap_and_gradients():
     for i, s in enumerate(scales):
         np.testing.assert_allclose(batched[i], render(s * vol, tf), atol=1e-12)
     # gradients w.r.t. the control values and the volume, finite where the opacity is 0;
-    # the opacities are differenced from 0.05 up, inside [0, 1]
-    inside = eqx.tree_at(lambda t: t.opacities, tf, tf.opacities.at[0].set(0.05))
-    for field, base in (("colors", tf), ("opacities", inside)):
-        shape = getattr(base, field).shape
+    # the opacities are differenced from 0.05 up, inside [0, 1]. All three, and the losses
+    # differenced, from one compiled program
+    def loss(v, colors, opacities):
+        t = eqx.tree_at(lambda t: (t.colors, t.opacities), tf, (colors, opacities))
+        return jnp.sum(weights * render(v, t))
 
-        @jax.jit
-        def loss(values, field=field, shape=shape, base=base):
-            t = eqx.tree_at(lambda t: getattr(t, field), base, values.reshape(shape))
-            return jnp.sum(weights * render(vol, t))
-
-        g = check_grad_fd(loss, getattr(base, field).ravel(), rtol=1e-4)
+    value_and_grad = jax.jit(jax.value_and_grad(loss, (0, 1, 2)))
+    g_vol, g_colors, _ = _check_grads_fd(value_and_grad, (vol, tf.colors, tf.opacities), (1,),
+                                         rtol=1e-4)
+    g_opacities = _check_grads_fd(value_and_grad, (vol, tf.colors, tf.opacities.at[0].set(0.05)),
+                                  (2,), rtol=1e-4)[2]
+    for g in (g_colors, g_opacities):
         assert float(jnp.max(jnp.abs(g))) > 0
-    g_vol = jax.jit(jax.grad(lambda v: jnp.sum(weights * render(v, tf))))(vol)
     assert np.all(np.isfinite(g_vol)) and float(jnp.sum(jnp.abs(g_vol))) > 0
 
 
@@ -663,8 +683,11 @@ def test_classification_option_is_checked_and_scenes_pass_it_on():
     with pytest.raises(ValueError, match="classification"):
         vs.Scene(volume=vol, transfer=tf, classification="pre-")
     scene = vs.Scene(volume=vol, transfer=tf, classification="pre", shading="phong")
-    np.testing.assert_array_equal(vs.render(scene, cam),
-                                  march(vol, tf, cam, classification="pre", shading="phong"))
+    # the camera and Phong's defaults strongly typed, as the render makes them: the march
+    # runs the render's compiled march (one compilation, not two)
+    cam, phong = (jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), x) for x in (cam, Phong()))
+    np.testing.assert_array_equal(vs.render(scene, cam), march(vol, tf, cam, classification="pre",
+                                                               shading="phong", phong=phong))
 
 
 def test_an_eager_render_compiles_once_and_still_refuses_bad_values_at_once():
