@@ -229,7 +229,8 @@ def test_rho_with_array_leaves_is_traced_and_gets_gradients():
     def total(p):
         return jnp.sum(obscurance(vol, rho=_PowerRho(p), **kw))
 
-    check_grad_fd(jax.jit(total), jnp.asarray(0.7))
+    # eager: the differences run the program compiled for _PowerRho above
+    check_grad_fd(total, jnp.asarray(0.7))
     # one compile per rho, reused: splitting rho at each call made a new static key
     # each time for a pytree rho (found reading the change)
     for rho in (_PowerRho(jnp.asarray(0.5)), jax.tree_util.Partial(lambda d, dm: d / dm)):
@@ -265,25 +266,28 @@ def test_parameter_modules_take_a_callable_rho():
 
 @pytest.fixture(scope="module")
 def corner_results():
-    alpha, colors = corner(24)
-    out = {rho: obscurance(alpha, directions=DIRS42, d_max=8.0, rho=rho) for rho in RHOS}
-    rgb = obscurance(alpha, directions=DIRS42, d_max=8.0, rho="sqrt", colors=colors)
+    # 12^3 and 42 directions, as the reference tests: their compiled grey programs are
+    # reused. The probes below lie 2 voxels from the walls they see and 7 (> d_max) from
+    # the others
+    alpha, colors = corner(12)
+    out = {rho: obscurance(alpha, directions=DIRS42, d_max=4.0, rho=rho) for rho in RHOS}
+    rgb = obscurance(alpha, directions=DIRS42, d_max=4.0, rho="sqrt", colors=colors)
     return out, rgb
 
 
 def test_corner_green_bleeding(corner_results):
     _, rgb = corner_results
-    r, g, b = (float(c) for c in rgb[14, 3, 14])  # next to the green wall only
+    r, g, b = (float(c) for c in rgb[8, 3, 8])  # next to the green wall only
     assert g > r and g > b
-    r, g, b = (float(c) for c in rgb[14, 14, 3])  # next to the blue wall only
+    r, g, b = (float(c) for c in rgb[8, 8, 3])  # next to the blue wall only
     assert b > r and b > g
 
 
 def test_corner_darker_than_wall_middle(corner_results):
     grey, rgb = corner_results
     for rho in ("sqrt", "linear", "exponential", "ao"):
-        assert float(grey[rho][2, 2, 2]) < float(grey[rho][2, 14, 14])
-    assert float(rgb[2, 2, 2].sum()) < float(rgb[2, 14, 14].sum())
+        assert float(grey[rho][2, 2, 2]) < float(grey[rho][2, 8, 8])
+    assert float(rgb[2, 2, 2].sum()) < float(rgb[2, 8, 8].sum())
 
 
 def test_sqrt_lighter_than_all_or_nothing_everywhere(corner_results):
@@ -294,9 +298,9 @@ def test_sqrt_lighter_than_all_or_nothing_everywhere(corner_results):
 
 
 def test_larger_d_max_is_darker():
-    alpha, _ = corner(16)
-    small = obscurance(alpha, directions=DIRS12, d_max=4.0, rho="ao")
-    large = obscurance(alpha, directions=DIRS12, d_max=12.0, rho="ao")
+    alpha, _ = corner(12)  # the corner above's program: d_max is its argument
+    small = obscurance(alpha, directions=DIRS42, d_max=4.0, rho="ao")
+    large = obscurance(alpha, directions=DIRS42, d_max=12.0, rho="ao")
     assert bool(jnp.all(large <= small))
 
 
@@ -325,7 +329,12 @@ def test_vmap_equals_stacked():
 @pytest.mark.parametrize("rho", ["linear", "exponential", "sqrt"])
 def test_grad_d_max_matches_finite_differences(rho):
     vol = jnp.asarray(random_volume((8, 8, 8), 11))
-    f = jax.jit(lambda dm: jnp.sum(obscurance(vol, directions=DIRS12, d_max=dm, rho=rho) ** 2))
+
+    # eager: the differences run obscurance's own program, for 8^3 and DIRS12 compiled by
+    # the tests above for sqrt and exponential
+    def f(dm):
+        return jnp.sum(obscurance(vol, directions=DIRS12, d_max=dm, rho=rho) ** 2)
+
     g = check_grad_fd(f, jnp.asarray(4.3))
     assert float(g) < 0  # larger d_max -> lower rho of each occluded direction
 
@@ -334,11 +343,12 @@ def test_grad_colours_and_ambient_match_finite_differences():
     vol = jnp.asarray(random_volume((6, 6, 6), 12, levels=3))
     colors = jnp.asarray(np.random.default_rng(13).random((6, 6, 6, 3)))
     w = jnp.asarray(np.random.default_rng(14).random((6, 6, 6, 3)))
-    f = jax.jit(lambda c: jnp.sum(w * obscurance(vol, directions=DIRS12, d_max=3.0, colors=c)))
-    check_grad_fd(f, colors)
-    h = jax.jit(lambda a: jnp.sum(w * obscurance(vol, directions=DIRS12, d_max=3.0,
-                                                 colors=colors, ambient=a)))
-    check_grad_fd(h, jnp.array([0.9, 0.5, 0.2]))
+    # one forward program for both checks' differences (the colours' at the default
+    # ambient, white)
+    total = jax.jit(lambda c, a: jnp.sum(w * obscurance(vol, directions=DIRS12, d_max=3.0,
+                                                        colors=c, ambient=a)))
+    check_grad_fd(lambda c: total(c, jnp.ones(3)), colors)
+    check_grad_fd(lambda a: total(colors, a), jnp.array([0.9, 0.5, 0.2]))
 
 
 def test_reverse_mode_memory_does_not_grow_with_the_directions():
@@ -512,14 +522,15 @@ def test_half_precision_density_keeps_d_max(dtype):
 
 @pytest.mark.parametrize("rho", ["exponential", "sqrt"])
 def test_obscurance_float32_agrees_with_float64(rho):
-    vol = float32_exact(random_volume((10, 11, 9), 15))
-    colors = float32_exact(np.random.default_rng(16).random((10, 11, 9, 3)))
+    # 12^3 and 42 directions, as the reference tests: their float64 grey program is reused
+    vol = float32_exact(random_volume((12, 12, 12), 15))
+    colors = float32_exact(np.random.default_rng(16).random((12, 12, 12, 3)))
     amb = (0.9, 0.8, 0.7)
     out = {}
     for dtype in (jnp.float32, jnp.float64):
         v = jnp.asarray(vol, dtype)
-        grey = obscurance(v, directions=DIRS12, d_max=jnp.asarray(4.5, dtype), rho=rho)
-        rgb = obscurance(v, directions=DIRS12, d_max=jnp.asarray(4.5, dtype), rho=rho,
+        grey = obscurance(v, directions=DIRS42, d_max=jnp.asarray(4.5, dtype), rho=rho)
+        rgb = obscurance(v, directions=DIRS42, d_max=jnp.asarray(4.5, dtype), rho=rho,
                          colors=jnp.asarray(colors, dtype), ambient=amb)
         assert grey.dtype == dtype and rgb.dtype == dtype
         out[dtype] = (np.asarray(grey, np.float64), np.asarray(rgb, np.float64))
@@ -527,7 +538,7 @@ def test_obscurance_float32_agrees_with_float64(rho):
         assert np.ptp(hi) > 0.3
         np.testing.assert_allclose(lo, hi, rtol=0, atol=2e-6)
     # and float64 is the reference's value
-    np.testing.assert_allclose(out[jnp.float64][0], ref.obscurance(vol, DIRS12, 4.5, rho),
+    np.testing.assert_allclose(out[jnp.float64][0], ref.obscurance(vol, DIRS42, 4.5, rho),
                                rtol=0, atol=1e-13)
 
 

@@ -34,6 +34,12 @@ def _smooth(seed):
     return jnp.asarray(0.5 + 0.3 * np.sin(3 * g[0] + seed) * np.cos(2 * g[1] - g[2] * seed))
 
 
+def _scalars(*values):
+    """float64 scalars, strongly typed as the finite differences' x + h v are: jit compiles
+    a weakly typed input (``jnp.asarray(3.3)``) apart from them."""
+    return tuple(jnp.float64(v) for v in values)
+
+
 CLIP = vs.SphereClip(center=(4.0, 4.0, 3.0), radius=2.5)
 LAO = dict(directions=VIEWS, radius=3.3, offset=0.7, samples=4)
 # opacity linear in the intensity: no kink for a finite difference to straddle
@@ -59,7 +65,7 @@ def _render(volume, shininess=8.0):
 CASES = {
     "LocalAmbientOcclusion(radius)": (
         lambda r: vs.LocalAmbientOcclusion(r, directions=6, samples=5, max_radius=5.0)(ALPHA),
-        (jnp.asarray(3.3), jnp.asarray(4.1)), True),
+        _scalars(3.3, 4.1), True),
     "occluder_distances": (
         lambda d: vs.occluder_distances(d, directions=VIEWS4), (VOLUME, 1 - VOLUME), False),
     "threshold": (lambda x: vs.threshold(x, 0.2, 0.8), (VOLUME * 0.5 + 0.25, _smooth(1)), True),
@@ -70,7 +76,7 @@ CASES = {
          jnp.stack([_smooth(4), _smooth(5), _smooth(6)], -1)), True),
     "ObscuranceParams(d_max)": (
         lambda dm: vs.ObscuranceParams(d_max=dm, low=0.1, high=0.9)(VOLUME, TF),
-        (jnp.asarray(3.5), jnp.asarray(6.0)), True),
+        _scalars(3.5, 6.0), True),
     "saliency": (vs.saliency, (_smooth(1), _smooth(2)), True),
     "projected_area": (lambda a: vs.projected_area(a, VIEWS),
                        (ALPHA, jnp.where(VOLUME > 0.9, ALPHA, 0.0)), False),  # sparse: holes
@@ -82,7 +88,7 @@ CASES = {
                          (ALPHA * 0.9, ALPHA ** 2), True),
     "SaliencyModulation(d_max)": (
         lambda dm: vs.SaliencyModulation(d_max=dm, threshold=0.1, level=0, size=3)(VOLUME, TF),
-        (jnp.asarray(3.5), jnp.asarray(6.0)), True),
+        _scalars(3.5, 6.0), True),
     "sample_importance(Importance)": (
         lambda x: vs.sample_importance(vs.Importance(intensity=1.5, extinction=0.5),
                                        intensity=x, extinction=x ** 2)[0],
@@ -91,7 +97,7 @@ CASES = {
         lambda c: vs.focus_weights((6, 7), center=c, radius=2.5, kind="gaussian"),
         (jnp.asarray([2.0, 3.5]), jnp.asarray([3.1, 1.2])), True),
     "Focus(radius)": (lambda r: vs.Focus(radius=r).weights((6, 7)),
-                      (jnp.asarray(0.3), jnp.asarray(0.45)), True),
+                      _scalars(0.3, 0.45), True),
     # sparse feature opacities: one-feature, mixed and empty neighbourhoods all occur
     "merge_feature_ao(neighbourhood)": (
         lambda ao: vs.merge_feature_ao(ao, FEATURE_OPACITIES, merge="neighbourhood"),
@@ -122,7 +128,7 @@ CASES = {
             [vs.IntervalFeature(0.2, 0.5), vs.IntervalFeature(0.5, 1.0)],
             lao=vs.LocalAmbientOcclusion(r, offset=0.7, directions=6, samples=4, max_radius=5.0),
             merge="neighbourhood")(VOLUME, base=TF),
-        (jnp.asarray(3.3), jnp.asarray(4.1)), True),
+        _scalars(3.3, 4.1), True),
     "feature_ao(volume)": (
         lambda v: vs.feature_ao(v, features=[RAMP_FEATURE, FALL_FEATURE], directions=6,
                                 radius=3.3, offset=0.7, samples=4, merge="max"),
@@ -139,7 +145,7 @@ CASES = {
     "TransferFunction.extinction": (lambda v: TF.extinction(v), (VOLUME, _smooth(1)), True),
     "clip_opacity": (lambda a: vs.clip_opacity(a, CLIP), (ALPHA, ALPHA ** 2), True),
     "affected_mask(radius)": (lambda r: vs.affected_mask(SHAPE, CLIP, radius=r),
-                              (jnp.asarray(1.0), jnp.asarray(3.0)), False),
+                              _scalars(1.0, 3.0), False),
     # VOLUME keeps > 1e-4 from the threshold and from the edge of the boosted top (0.8)
     "opacity_factor": (lambda s: opacity_factor(s, threshold=0.3, boost_top=0.2),
                        (VOLUME, _smooth(1)), True),
@@ -153,7 +159,7 @@ CASES = {
     "trilinear(points)": (lambda p: trilinear(VOLUME, p), (POINTS[0], POINTS[1]), True),
     "render(volume)": (_render, (_smooth(1), _smooth(2)), True),
     "render(Phong.shininess)": (lambda n: _render(_smooth(1), n),
-                                (jnp.asarray(8.0), jnp.asarray(12.0)), True),
+                                _scalars(8.0, 12.0), True),
 }
 
 
@@ -173,7 +179,10 @@ def test_jit_equals_eager_and_vmap_equals_loop(name):
 def test_grad_matches_finite_differences(name):
     fn, (x1, _), _ = CASES[name]
     weights = jnp.asarray(np.random.default_rng(7).normal(size=jax.eval_shape(fn, x1).shape))
-    g = check_grad_fd(jax.jit(lambda x: jnp.sum(weights * fn(x))), x1, rtol=1e-4)
+    # the differences run jax.jit(fn), compiled by the test above (jit caches it by the
+    # function): one program fewer than a jitted sum of its own
+    jitted = jax.jit(fn)
+    g = check_grad_fd(lambda x: jnp.sum(weights * jitted(x)), x1, rtol=1e-4)
     assert np.all(np.isfinite(np.asarray(g))) and float(jnp.max(jnp.abs(g))) > 0
 
 
