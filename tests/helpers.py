@@ -32,18 +32,31 @@ def temp_bytes(f, *specs) -> int:
     return jax.jit(f).lower(*specs).compile().memory_analysis().temp_size_in_bytes
 
 
-def check_grad_fd(f, x, *, key=0, h=1e-6, rtol=1e-4, n_dirs=3, directions=None):
-    """Compare ``jax.grad(f)(x) . v`` with central differences along ``directions`` (an
-    ``(n, *x.shape)`` array, each normalised here), by default ``n_dirs`` random ones."""
-    g = jax.jit(jax.grad(f))(x)
-    if directions is None:
-        directions = np.random.default_rng(key).standard_normal((n_dirs, *np.shape(x)))
-    for v in jnp.asarray(directions):
-        v = v / jnp.linalg.norm(v)
-        ad = float(jnp.vdot(g, v))
-        fd = float(central_difference(f, x, v, h))
-        assert abs(ad - fd) <= rtol * max(abs(fd), abs(ad), 1e-8), (ad, fd)
-    return g
+def check_grads_fd(value_and_grad, args, wrt=(0,), *, key=0, h=1e-6, rtol=1e-4, n_dirs=3,
+                   directions=None):
+    """Compare the gradients of a loss with central differences of the loss, in each
+    argument ``args[i]``, ``i`` in ``wrt``, along ``directions`` (an ``(n, *shape)``
+    array, each normalised here), by default ``n_dirs`` random ones (seed ``key``, the
+    same for each argument). ``value_and_grad(*args)`` returns the loss and its gradients
+    with respect to ``args[0], args[1], ...`` (``jax.jit(jax.value_and_grad(loss,
+    argnums))``): the differences evaluate the same compiled program, so the values and
+    the gradients of every argument compile once. Returns the gradients."""
+    _, grads = value_and_grad(*args)
+    for i in wrt:
+        dirs = (np.random.default_rng(key).standard_normal((n_dirs, *np.shape(args[i])))
+                if directions is None else directions)
+        for v in jnp.asarray(dirs):
+            v = v / jnp.linalg.norm(v)
+            ad = float(jnp.vdot(grads[i], v))
+            fd = float(central_difference(
+                lambda x, i=i: value_and_grad(*args[:i], x, *args[i + 1:])[0], args[i], v, h))
+            assert abs(ad - fd) <= rtol * max(abs(fd), abs(ad), 1e-8), (i, ad, fd)
+    return grads
+
+
+def check_grad_fd(f, x, **kwargs):
+    """:func:`check_grads_fd` of a scalar ``f`` of one array ``x``; returns its gradient."""
+    return check_grads_fd(jax.jit(jax.value_and_grad(f, (0,))), (x,), **kwargs)[0]
 
 
 def one_medium_written_twice():

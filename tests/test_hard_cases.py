@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import reference_composition as ref_comp
 import reference_obscurance as ref_obs
-from helpers import central_difference, check_grad_fd
+from helpers import central_difference, check_grad_fd, check_grads_fd
 from reference_gradient import regression_gradient_reference
 from reference_lao import lao_reference
 
@@ -452,15 +452,10 @@ def test_lao_gradients_at_boundary_radius_match_finite_differences():
     r, a = jnp.float64(8.0), jnp.float64(0.0)
     g_alpha, g_r, g_a = _lao_grad_jit(alpha, r, a)
     assert _finite(g_alpha, g_r, g_a)
-    # check_grad_fd's test (its directions, key 0) of the gradient compiled above, not of
-    # one compiled again for a new function
-    rng = np.random.default_rng(0)
-    for _ in range(2):
-        v = jnp.asarray(rng.standard_normal(alpha.shape))
-        v = v / jnp.linalg.norm(v)
-        ad = float(jnp.vdot(g_alpha, v))
-        fd = float(central_difference(lambda x: _lao_loss_jit(x, r, a), alpha, v))
-        assert abs(ad - fd) <= 1e-4 * max(abs(fd), abs(ad), 1e-8), (ad, fd)
+    # differences of the loss compiled for the tests above, against their gradient (a
+    # new function would compile both again)
+    check_grads_fd(lambda x: (_lao_loss_jit(x, r, a), _lao_grad_jit(x, r, a)), (alpha,),
+                   n_dirs=2)
     # at the kink the radius derivative lies between the one-sided differences
     f = lambda x: _lao_loss_jit(alpha, x, a)  # noqa: E731
     h, at = 1e-6, float(f(r))

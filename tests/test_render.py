@@ -3,7 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import central_difference, run_with_user_xla_flags
+from helpers import check_grad_fd, check_grads_fd, run_with_user_xla_flags
 
 import volshade as vs
 from volshade.camera import Camera, box_half_extent, intersect_box
@@ -35,25 +35,6 @@ def _ortho_along_h(image_shape=(6, 6), width=1.5):
     # Azimuth 0, elevation 0: parallel rays along -h.
     return Camera.orbit(azimuth=0.0, elevation=0.0, image_shape=image_shape,
                         projection="orthographic", width=width)
-
-
-def _check_grads_fd(value_and_grad, args, wrt, *, rtol=1e-4, n_dirs=3):
-    """helpers.check_grad_fd for each argument ``i`` in ``wrt`` of a jitted
-    ``value_and_grad(*args) -> (loss, gradients of every argument)``, the central
-    differences taken of its loss: one compiled program, where a jitted loss and its
-    jitted gradient were two per argument checked (1-4 s apiece to compile). The
-    directions are check_grad_fd's (its key 0, for each argument). Returns the gradients."""
-    _, grads = value_and_grad(*args)
-    for i in wrt:
-        rng = np.random.default_rng(0)
-        for _ in range(n_dirs):
-            v = jnp.asarray(rng.standard_normal(np.shape(args[i])))
-            v = v / jnp.linalg.norm(v)
-            ad = float(jnp.vdot(grads[i], v))
-            fd = float(central_difference(
-                lambda x, i=i: value_and_grad(*args[:i], x, *args[i + 1:])[0], args[i], v))
-            assert abs(ad - fd) <= rtol * max(abs(fd), abs(ad), 1e-8), (i, ad, fd)
-    return grads
 
 
 def _smooth_volume(n=10, seed=0):
@@ -133,7 +114,7 @@ def test_gradient_wrt_transfer_function_matches_finite_differences():
         t = eqx.tree_at(lambda t: (t.colors, t.opacities), tf, (colors, opacities))
         return jnp.sum(weights * march(vol, t, cam, step=0.5, shading="phong"))
 
-    grads = _check_grads_fd(jax.jit(jax.value_and_grad(loss, (0, 1))),
+    grads = check_grads_fd(jax.jit(jax.value_and_grad(loss, (0, 1))),
                             (tf.colors, tf.opacities), (0, 1), rtol=1e-4)
     for g in grads:
         assert float(jnp.max(jnp.abs(g))) > 0
@@ -179,7 +160,6 @@ def test_gradient_wrt_camera_matches_finite_differences():
                                        (1.0, 0.9, 0.9, 0.95, 0.7)])
     weights = jnp.asarray(np.random.default_rng(4).random((5, 4, 4)))
 
-    # (each loss and its gradient from one compiled program)
     def by_angles(angles):
         cam = Camera.orbit(azimuth=angles[0], elevation=angles[1], image_shape=(5, 4))
         return jnp.sum(weights * march(vol, tf, cam, step=0.5, shading="phong"))
@@ -189,11 +169,9 @@ def test_gradient_wrt_camera_matches_finite_differences():
                      jnp.asarray(0.9), image_shape=(5, 4), projection="orthographic")
         return jnp.sum(weights * march(vol, tf, cam, step=0.5))
 
-    (g,) = _check_grads_fd(jax.jit(jax.value_and_grad(by_angles, (0,))),
-                           (jnp.asarray([25.0, 10.0]),), (0,), rtol=1e-4)
+    g = check_grad_fd(by_angles, jnp.asarray([25.0, 10.0]), rtol=1e-4)
     assert np.all(np.abs(np.asarray(g)) > 1e-6)
-    (g,) = _check_grads_fd(jax.jit(jax.value_and_grad(by_eye, (0,))),
-                           (jnp.asarray([0.6, 1.9, 0.9]),), (0,), rtol=1e-4)
+    g = check_grad_fd(by_eye, jnp.asarray([0.6, 1.9, 0.9]), rtol=1e-4)
     assert float(jnp.max(jnp.abs(g))) > 1e-6
 
 
@@ -620,9 +598,9 @@ def test_pre_classification_jit_vmap_and_gradients():
         return jnp.sum(weights * render(v, t))
 
     value_and_grad = jax.jit(jax.value_and_grad(loss, (0, 1, 2)))
-    g_vol, g_colors, _ = _check_grads_fd(value_and_grad, (vol, tf.colors, tf.opacities), (1,),
+    g_vol, g_colors, _ = check_grads_fd(value_and_grad, (vol, tf.colors, tf.opacities), (1,),
                                          rtol=1e-4)
-    g_opacities = _check_grads_fd(value_and_grad, (vol, tf.colors, tf.opacities.at[0].set(0.05)),
+    g_opacities = check_grads_fd(value_and_grad, (vol, tf.colors, tf.opacities.at[0].set(0.05)),
                                   (2,), rtol=1e-4)[2]
     for g in (g_colors, g_opacities):
         assert float(jnp.max(jnp.abs(g))) > 0
