@@ -60,11 +60,16 @@ def test_the_default_view_holds_the_whole_visible_volume(tmp_path, projection):
     assert border.max() == 0 and (img > 0).mean() > 0.2
 
 
-def test_python_m_volshade_runs_the_cli():
-    result = subprocess.run([sys.executable, "-m", "volshade", "render", "--help"],
-                            capture_output=True, text=True, check=False)
-    assert result.returncode == 0
-    assert "(default: 256)" in result.stdout and "--classification" in result.stdout
+def test_the_render_help_shows_defaults_and_options(monkeypatch, capsys):
+    # in this process (`python -m volshade` runs in a subprocess in
+    # test_an_image_past_the_index_range_is_an_error_not_a_traceback), at the width of a
+    # pipe's help, 80 columns
+    monkeypatch.setenv("COLUMNS", "80")
+    with pytest.raises(SystemExit) as done:
+        cli.main(["render", "--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert "(default: 256)" in out and "--classification" in out
 
 
 def test_demo_writes_pngs(tmp_path, monkeypatch, capsys):
@@ -133,7 +138,8 @@ def test_cli_errors(tmp_path, capsys):
 def test_an_image_past_the_index_range_is_an_error_not_a_traceback(tmp_path):
     # found by a review: OverflowError's traceback. Run as a user runs it, in a process
     # of its own without the suite's x64 (with 64-bit indices the render would try to
-    # allocate the image instead)
+    # allocate the image instead), through `python -m volshade`: the suite's one
+    # subprocess of the CLI, which so also checks that the module runs the CLI
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     env.pop("XLA_FLAGS", None)
     done = subprocess.run([sys.executable, "-m", "volshade", "render", "shells", "--out",

@@ -80,26 +80,32 @@ def _close(a, b):
 
 
 def test_forward_and_reverse_mode_equal_jax_on_the_plain_map():
+    # first derivatives eagerly (the primitive's rules run op by op), the rest and JAX's
+    # references each jitted alone: eagerly the second derivatives compiled some 250
+    # small programs, one per operation and shape (merged into one jitted program the
+    # references compiled slower still)
     args = _args(0)
     t = _args(1)
-    _close(jax.jvp(_f, args, t), jax.jvp(_plain, args, t))
+    jit = jax.jit
+    want_jvp = jit(lambda a, t: jax.jvp(_plain, a, t))(args, t)
+    _close(jax.jvp(_f, args, t), want_jvp)
     _TRANSPOSED.clear()
     loss = lambda *a: jnp.sum(jnp.sin(_f(*a)))  # noqa: E731
     plain_loss = lambda *a: jnp.sum(jnp.sin(_plain(*a)))  # noqa: E731
-    _close(jax.grad(loss, (0, 1, 2))(*args), jax.grad(plain_loss, (0, 1, 2))(*args))
+    _close(jax.grad(loss, (0, 1, 2))(*args), jit(jax.grad(plain_loss, (0, 1, 2)))(*args))
     assert _TRANSPOSED  # reverse mode went through the hand-written transpose
-    _close(jax.jit(jax.grad(loss, (1, 2)))(*args), jax.grad(plain_loss, (1, 2))(*args))
-    _close(jax.grad(jax.checkpoint(loss), 1)(*args), jax.grad(plain_loss, 1)(*args))
-    _close(jax.jacfwd(_f, (0, 1, 2))(*args), jax.jacrev(_plain, (0, 1, 2))(*args))
+    _close(jit(jax.grad(loss, (1, 2)))(*args), jit(jax.grad(plain_loss, (1, 2)))(*args))
+    _close(jit(jax.grad(jax.checkpoint(loss), 1))(*args), jit(jax.grad(plain_loss, 1))(*args))
+    _close(jit(jax.jacfwd(_f, (0, 1, 2)))(*args), jit(jax.jacrev(_plain, (0, 1, 2)))(*args))
     # second derivatives: forward over reverse, reverse over forward, forward over forward
-    _close(jax.hessian(loss, (0, 1))(*args), jax.hessian(plain_loss, (0, 1))(*args))
-    _close(jax.jacrev(jax.jacfwd(loss, 1), 0)(*args),
-           jax.jacrev(jax.jacfwd(plain_loss, 1), 0)(*args))
-    _close(jax.jacfwd(jax.jacfwd(loss, 2), 0)(*args),
-           jax.jacfwd(jax.jacfwd(plain_loss, 2), 0)(*args))
+    _close(jit(jax.hessian(loss, (0, 1)))(*args), jit(jax.hessian(plain_loss, (0, 1)))(*args))
+    _close(jit(jax.jacrev(jax.jacfwd(loss, 1), 0))(*args),
+           jit(jax.jacrev(jax.jacfwd(plain_loss, 1), 0))(*args))
+    _close(jit(jax.jacfwd(jax.jacfwd(loss, 2), 0))(*args),
+           jit(jax.jacfwd(jax.jacfwd(plain_loss, 2), 0))(*args))
     # a VJP transposed back into forward mode
     out, vjp = jax.vjp(_f, *args)
-    _close(jax.linear_transpose(vjp, out)(t), jax.jvp(_plain, args, t)[1])
+    _close(jax.linear_transpose(vjp, out)(t), want_jvp[1])
 
 
 def test_symbolic_zero_tangents_are_flagged_and_not_formed():
@@ -134,10 +140,11 @@ def test_vmap_maps_each_operand_over_the_levels_it_carries(axes):
     def mapped_grad(g):
         return jax.vmap(jax.grad(lambda *a: jnp.sum(jnp.cos(g(*a))), (0, 1, 2)), axes)
 
-    _close(jax.jit(jvp(_f))(*args, *t), jvp(_plain)(*args, *t))
+    # JAX's references jitted (eagerly each compiled a program per operation)
+    _close(jax.jit(jvp(_f))(*args, *t), jax.jit(jvp(_plain))(*args, *t))
     _close(jax.grad(mapped_loss(_f), (0, 1, 2))(*args),
-           jax.grad(mapped_loss(_plain), (0, 1, 2))(*args))
-    _close(mapped_grad(_f)(*args), mapped_grad(_plain)(*args))
+           jax.jit(jax.grad(mapped_loss(_plain), (0, 1, 2)))(*args))
+    _close(mapped_grad(_f)(*args), jax.jit(mapped_grad(_plain))(*args))
 
 
 @pytest.mark.parametrize("size", [2, 0])
@@ -166,11 +173,14 @@ def test_nested_vmap_with_operands_on_different_levels():
     def nested(f):
         return jax.vmap(jax.vmap(f, (None, 0, 0)), (0, None, 0))
 
-    _close(jax.jit(nested(_f))(r, x, y), nested(_plain)(r, x, y))
+    # JAX's references jitted (eagerly each compiled a program per operation)
+    _close(jax.jit(nested(_f))(r, x, y), jax.jit(nested(_plain))(r, x, y))
     loss = lambda f: lambda *a: jnp.sum(jnp.sin(nested(f)(*a)))  # noqa: E731
-    _close(jax.grad(loss(_f), (0, 1, 2))(r, x, y), jax.grad(loss(_plain), (0, 1, 2))(r, x, y))
+    _close(jax.grad(loss(_f), (0, 1, 2))(r, x, y),
+           jax.jit(jax.grad(loss(_plain), (0, 1, 2)))(r, x, y))
     t = (jnp.ones_like(r), jnp.ones_like(x), jnp.ones_like(y))
-    _close(jax.jvp(loss(_f), (r, x, y), t), jax.jvp(loss(_plain), (r, x, y), t))
+    _close(jax.jvp(loss(_f), (r, x, y), t),
+           jax.jit(lambda *a: jax.jvp(loss(_plain), a, t))(r, x, y))
 
 
 def test_inside_scan_and_cond():

@@ -29,8 +29,12 @@ def test_edge_pad_equals_jnp_pad_and_its_transpose(dtype):
     assert got.dtype == dtype and got.shape == ref.shape
     assert np.array_equal(np.asarray(got), np.asarray(ref))
     w = jnp.asarray(rng.normal(size=ref.shape), dtype)
-    np.testing.assert_allclose(jax.vjp(lambda x: nm.edge_pad(x, widths), x)[1](w)[0],
-                               jax.vjp(lambda x: jnp.pad(x, widths, mode="edge"), x)[1](w)[0],
+
+    def pullback(pad):  # jitted: eagerly it compiled a program per operation
+        return jax.jit(lambda x, w: jax.vjp(pad, x)[1](w)[0])(x, w)
+
+    np.testing.assert_allclose(pullback(lambda x: nm.edge_pad(x, widths)),
+                               pullback(lambda x: jnp.pad(x, widths, mode="edge")),
                                rtol=1e-6 if dtype == jnp.float32 else 1e-14)
 
 
@@ -44,13 +48,10 @@ def test_safe_div_singular_point():
 def test_quotient_slopes_without_den_squared():
     num, den = jnp.asarray([3.0, -1.5]), jnp.asarray([2.0, 0.25])
     np.testing.assert_array_equal(nm.quotient(num, den), num / den)
-    for argnums in (0, 1):
-        np.testing.assert_allclose(
-            jax.jacfwd(nm.quotient, argnums)(num, den), jax.jacfwd(jnp.divide, argnums)(num, den),
-            rtol=1e-15)
-        np.testing.assert_allclose(
-            jax.jacrev(nm.quotient, argnums)(num, den), jax.jacrev(jnp.divide, argnums)(num, den),
-            rtol=1e-15)
+    # each Jacobian jitted (eagerly it compiled a program per operation)
+    for jac in (jax.jacfwd, jax.jacrev):
+        np.testing.assert_allclose(jax.jit(jac(nm.quotient, (0, 1)))(num, den),
+                                   jax.jit(jac(jnp.divide, (0, 1)))(num, den), rtol=1e-15)
     # float32, den = 1e-20: den ** -2 overflows (`/` gives -inf here), the slope
     # -num / den ** 2 = -1e20 does not
     num32, den32 = jnp.float32(1e-20), jnp.float32(1e-20)
@@ -106,7 +107,7 @@ def test_safe_normalize_of_a_huge_vector(scale):
     np.testing.assert_allclose(nm.safe_normalize(big), [0.6, 0, 0.8], rtol=1e-6)
     # the direction is scale-invariant, so its Jacobian at c x is that at x over c (at
     # 3e38 that is below float32's normal numbers)
-    jac = jax.jacrev(nm.safe_normalize)
+    jac = jax.jit(jax.jacrev(nm.safe_normalize))  # one program for its three calls
     if scale < 1e30:
         np.testing.assert_allclose(np.asarray(jac(big), np.float64) * (scale / 4),
                                    jac(x), rtol=1e-5, atol=1e-7)
