@@ -297,9 +297,11 @@ def test_parameters_switched_off_by_a_zero_weight_are_refused_until_it_is_turned
         vs.fit(scene, cam, vs.render(scene, cam), params=params)
     compiled = _solve._cached._cache_size()
     # fitted with the weight that switches it on, from 0, it moves once the weight has
+    # (weakly typed arrays, as the constructor makes them: the target's render reuses the
+    # first render's program, which Python floats compiled again)
     truth = eqx.tree_at(lambda s: (s.importance.lighting, s.importance.specular_exponent),
-                        scene, (4.0, 6.0))
-    start = eqx.tree_at(lambda s: s.importance.specular_exponent, scene, 10.0)
+                        scene, (jnp.asarray(4.0), jnp.asarray(6.0)))
+    start = eqx.tree_at(lambda s: s.importance.specular_exponent, scene, jnp.asarray(10.0))
     result = vs.fit(start, cam, vs.render(truth, cam), params=params)
     assert _solve._cached._cache_size() == compiled
     assert float(result.loss) < 1e-12 * float(result.initial_loss)
