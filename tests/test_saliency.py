@@ -249,8 +249,7 @@ def test_viewpoint_saliency_grad_vmap_dtype():
     sal, alpha = jnp.asarray(rng.random((5, 5, 5))), jnp.asarray(0.5 * rng.random((5, 5, 5)))
     f = jax.jit(lambda a: jnp.sum(viewpoint_saliency(sal, a, VIEWS) ** 2))
     check_grad_fd(f, alpha)
-    # fully opaque: finite (check_grad_fd's program, from the compilation cache; the
-    # eager gradient compiled two more)
+    # fully opaque: finite (jitted: eagerly the forward and backward passes compiled apart)
     g = jax.jit(jax.grad(f))(jnp.ones((5, 5, 5)))
     assert bool(jnp.all(jnp.isfinite(g)))
     alphas = jnp.stack([alpha, 1 - alpha])
