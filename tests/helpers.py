@@ -32,6 +32,14 @@ def temp_bytes(f, *specs) -> int:
     return jax.jit(f).lower(*specs).compile().memory_analysis().temp_size_in_bytes
 
 
+def strongly_typed(tree):
+    """``tree`` (numbers, a camera, effect parameters) with every leaf a strongly typed
+    float64 array, as a render makes a scene's and a camera's leaves and as a finite
+    difference's ``x + h v`` is: jit compiles a weakly typed input (a Python float,
+    ``jnp.asarray(3.3)``) apart, so a test given these reuses the program."""
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), tree)
+
+
 def check_grads_fd(value_and_grad, args, wrt=(0,), *, key=0, h=1e-6, rtol=1e-4, n_dirs=3,
                    directions=None):
     """Compare the gradients of a loss with central differences of the loss, in each

@@ -3,7 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import check_grad_fd, check_grads_fd, run_with_user_xla_flags
+from helpers import check_grad_fd, check_grads_fd, run_with_user_xla_flags, strongly_typed
 
 import volshade as vs
 from volshade.camera import Camera, box_half_extent, intersect_box
@@ -665,7 +665,7 @@ def test_classification_option_is_checked_and_scenes_pass_it_on():
     scene = vs.Scene(volume=vol, transfer=tf, classification="pre", shading="phong")
     # the camera and Phong's defaults strongly typed, as the render makes them: the march
     # runs the render's compiled march (one compilation, not two)
-    cam, phong = (jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), x) for x in (cam, Phong()))
+    cam, phong = strongly_typed((cam, Phong()))
     np.testing.assert_array_equal(vs.render(scene, cam), march(vol, tf, cam, classification="pre",
                                                                shading="phong", phong=phong))
 

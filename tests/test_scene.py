@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import reference_composition as ref
-from helpers import one_medium_written_twice, tol
+from helpers import one_medium_written_twice, strongly_typed, tol
 
 import volshade as vs
 import volshade.scene as scene_module
@@ -27,22 +27,15 @@ def _volume():
     return jnp.asarray(np.random.default_rng(0).random((6, 6, 6)))
 
 
-def _strong(tree):
-    """``tree`` (a camera, effect parameters) with strongly typed float64 leaves, as a
-    render makes a scene's and a camera's: a march given them runs the render's
-    compiled march (one compilation, not two)."""
-    return jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), tree)
-
-
 def test_render_equals_march_with_the_scene_options():
-    cam = _strong(Camera.orbit(azimuth=40.0, image_shape=(4, 4)))
+    cam = strongly_typed(Camera.orbit(azimuth=40.0, image_shape=(4, 4)))
     vol = _volume()
     ao = jnp.full((6, 6, 6), 0.7)
     s = Scene(volume=vol, transfer=preset("grey"), shading="phong", ambient="volume",
               ambient_volume=ao, background=(0.1, 0.2, 0.3), step=0.8)
     np.testing.assert_allclose(
         render(s, cam),
-        march(vol, preset("grey"), cam, shading="phong", phong=_strong(Phong()), ambient=ao,
+        march(vol, preset("grey"), cam, shading="phong", phong=strongly_typed(Phong()), ambient=ao,
               step=0.8, background=(0.1, 0.2, 0.3)), atol=1e-12)
     assert s.plan() == {"ambient": "volume", "modulation": "none", "shading": "phong",
                         "composition": "standard"}
@@ -286,11 +279,11 @@ def test_effect_parameters_default_when_used_and_are_refused_when_not():
 def test_lao_obscurance_saliency_and_importance_effects_match_their_kernels():
     vol = _volume()
     tf = preset("grey")
-    cam = _strong(Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(4, 4)))
+    cam = strongly_typed(Camera.orbit(azimuth=25.0, elevation=15.0, image_shape=(4, 4)))
     params = LocalAmbientOcclusion(3.0, offset=0.5, directions=6, samples=4)
     s = Scene(volume=vol, transfer=tf, ambient="lao", lao=params, shading="phong")
     ao = lao(tf.opacity(vol), directions=params.directions, radius=3.0, offset=0.5, samples=4)
-    phong = _strong(Phong())
+    phong = strongly_typed(Phong())
     np.testing.assert_allclose(render(s, cam), march(vol, tf, cam, shading="phong", phong=phong,
                                                      ambient=ao), atol=1e-12)
     obs_params = ObscuranceParams(d_max=4.0, level=0, color_bleeding=True)
@@ -308,7 +301,7 @@ def test_lao_obscurance_saliency_and_importance_effects_match_their_kernels():
                                                 d_max=4.0), size=3), threshold=0.2)
     np.testing.assert_allclose(render(s, cam), march(vol, tf, cam, opacity_scale=factor),
                                atol=1e-12)
-    imp = _strong(Importance(intensity=3.0, silhouette=1.0))
+    imp = strongly_typed(Importance(intensity=3.0, silhouette=1.0))
     focus = Focus(center=(0.5, 0.5), radius=0.3, kind="circular")
     s = Scene(volume=vol, transfer=tf, composition="importance", importance=imp, focus=focus)
     np.testing.assert_allclose(

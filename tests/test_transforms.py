@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import reference_obscurance as ref
-from helpers import check_grad_fd
+from helpers import check_grad_fd, strongly_typed
 
 import volshade as vs
 from volshade.directions import icosphere, icosphere_points
@@ -32,12 +32,6 @@ def _smooth(seed):
     """A smooth field (no ties, no flat regions) on SHAPE."""
     g = np.stack(np.meshgrid(*[np.linspace(0, 1, s) for s in SHAPE], indexing="ij"))
     return jnp.asarray(0.5 + 0.3 * np.sin(3 * g[0] + seed) * np.cos(2 * g[1] - g[2] * seed))
-
-
-def _scalars(*values):
-    """float64 scalars, strongly typed as the finite differences' x + h v are: jit compiles
-    a weakly typed input (``jnp.asarray(3.3)``) apart from them."""
-    return tuple(jnp.float64(v) for v in values)
 
 
 CLIP = vs.SphereClip(center=(4.0, 4.0, 3.0), radius=2.5)
@@ -65,7 +59,7 @@ def _render(volume, shininess=8.0):
 CASES = {
     "LocalAmbientOcclusion(radius)": (
         lambda r: vs.LocalAmbientOcclusion(r, directions=6, samples=5, max_radius=5.0)(ALPHA),
-        _scalars(3.3, 4.1), True),
+        strongly_typed((3.3, 4.1)), True),
     "occluder_distances": (
         lambda d: vs.occluder_distances(d, directions=VIEWS4), (VOLUME, 1 - VOLUME), False),
     "threshold": (lambda x: vs.threshold(x, 0.2, 0.8), (VOLUME * 0.5 + 0.25, _smooth(1)), True),
@@ -76,7 +70,7 @@ CASES = {
          jnp.stack([_smooth(4), _smooth(5), _smooth(6)], -1)), True),
     "ObscuranceParams(d_max)": (
         lambda dm: vs.ObscuranceParams(d_max=dm, low=0.1, high=0.9)(VOLUME, TF),
-        _scalars(3.5, 6.0), True),
+        strongly_typed((3.5, 6.0)), True),
     "saliency": (vs.saliency, (_smooth(1), _smooth(2)), True),
     "projected_area": (lambda a: vs.projected_area(a, VIEWS),
                        (ALPHA, jnp.where(VOLUME > 0.9, ALPHA, 0.0)), False),  # sparse: holes
@@ -88,7 +82,7 @@ CASES = {
                          (ALPHA * 0.9, ALPHA ** 2), True),
     "SaliencyModulation(d_max)": (
         lambda dm: vs.SaliencyModulation(d_max=dm, threshold=0.1, level=0, size=3)(VOLUME, TF),
-        _scalars(3.5, 6.0), True),
+        strongly_typed((3.5, 6.0)), True),
     "sample_importance(Importance)": (
         lambda x: vs.sample_importance(vs.Importance(intensity=1.5, extinction=0.5),
                                        intensity=x, extinction=x ** 2)[0],
@@ -97,7 +91,7 @@ CASES = {
         lambda c: vs.focus_weights((6, 7), center=c, radius=2.5, kind="gaussian"),
         (jnp.asarray([2.0, 3.5]), jnp.asarray([3.1, 1.2])), True),
     "Focus(radius)": (lambda r: vs.Focus(radius=r).weights((6, 7)),
-                      _scalars(0.3, 0.45), True),
+                      strongly_typed((0.3, 0.45)), True),
     # sparse feature opacities: one-feature, mixed and empty neighbourhoods all occur
     "merge_feature_ao(neighbourhood)": (
         lambda ao: vs.merge_feature_ao(ao, FEATURE_OPACITIES, merge="neighbourhood"),
@@ -128,7 +122,7 @@ CASES = {
             [vs.IntervalFeature(0.2, 0.5), vs.IntervalFeature(0.5, 1.0)],
             lao=vs.LocalAmbientOcclusion(r, offset=0.7, directions=6, samples=4, max_radius=5.0),
             merge="neighbourhood")(VOLUME, base=TF),
-        _scalars(3.3, 4.1), True),
+        strongly_typed((3.3, 4.1)), True),
     "feature_ao(volume)": (
         lambda v: vs.feature_ao(v, features=[RAMP_FEATURE, FALL_FEATURE], directions=6,
                                 radius=3.3, offset=0.7, samples=4, merge="max"),
@@ -145,7 +139,7 @@ CASES = {
     "TransferFunction.extinction": (lambda v: TF.extinction(v), (VOLUME, _smooth(1)), True),
     "clip_opacity": (lambda a: vs.clip_opacity(a, CLIP), (ALPHA, ALPHA ** 2), True),
     "affected_mask(radius)": (lambda r: vs.affected_mask(SHAPE, CLIP, radius=r),
-                              _scalars(1.0, 3.0), False),
+                              strongly_typed((1.0, 3.0)), False),
     # VOLUME keeps > 1e-4 from the threshold and from the edge of the boosted top (0.8)
     "opacity_factor": (lambda s: opacity_factor(s, threshold=0.3, boost_top=0.2),
                        (VOLUME, _smooth(1)), True),
@@ -159,7 +153,7 @@ CASES = {
     "trilinear(points)": (lambda p: trilinear(VOLUME, p), (POINTS[0], POINTS[1]), True),
     "render(volume)": (_render, (_smooth(1), _smooth(2)), True),
     "render(Phong.shininess)": (lambda n: _render(_smooth(1), n),
-                                _scalars(8.0, 12.0), True),
+                                strongly_typed((8.0, 12.0)), True),
 }
 
 
